@@ -1,0 +1,161 @@
+"""UART receiver: 8N1, 16x oversampling, run-time divisor."""
+
+from amaranth import *
+from amaranth.lib import data, enum, stream, wiring
+from amaranth.lib.cdc import FFSynchronizer
+from amaranth.lib.wiring import In, Out
+
+from .arch import uart as arch
+
+
+__all__ = ["RxByte", "UartRx"]
+
+
+class RxByte(data.StructLayout):
+    """A received character and what went wrong with it.
+
+    ``framing_error``: the stop bit was space. ``brk``: a whole character of space (a break;
+    ``framing_error`` is set too). ``overrun``: the previous character was still unread when
+    this one arrived and was lost. A character with any flag set carries no trustworthy value.
+    """
+    def __init__(self):
+        super().__init__({
+            "data":          arch.DATA_BITS,
+            "framing_error": 1,
+            "brk":           1,
+            "overrun":       1,
+        })
+
+
+class _State(enum.Enum, shape=2):
+    IDLE      = 0
+    RECEIVE   = 1
+    WAIT_MARK = 2
+
+
+class UartRx(wiring.Component):
+    """8N1 UART receiver.
+
+    The line is sampled ``arch.OVERSAMPLING`` times per bit: one sample every ``divisor``
+    clock cycles, so the baud rate is ``f_clk / (16 * divisor)``; a divisor of 0 acts as 1.
+    The line passes a two flip-flop synchroniser first. A start bit must still be space at
+    the middle of the bit (majority of the three middle samples), so a glitch shorter than
+    about half a bit is ignored. Each bit is the majority of its three middle samples.
+
+    After a framing error or a break the receiver waits for the line to return to mark
+    before it looks for the next start bit, and reports the character once.
+
+    Parameters
+    ----------
+    divisor_bits : int
+        Width of the run-time divisor.
+    divisor_init : int
+        Divisor after reset.
+
+    Members
+    -------
+    rx : ``In(1)``
+        Serial line (asynchronous).
+    divisor : ``In(divisor_bits)``
+        Clock cycles per oversampling tick.
+    o : ``Out(stream.Signature(RxByte))``
+        Received characters. There is no flow control on a serial line: a character not
+        taken before the next one is complete is replaced, and the new one flags ``overrun``.
+    """
+    def __init__(self, *, divisor_bits=16, divisor_init=1):
+        if not isinstance(divisor_bits, int) or divisor_bits < 1:
+            raise TypeError(f"Divisor width must be a positive integer, not {divisor_bits!r}")
+        if (not isinstance(divisor_init, int) or divisor_init < 1 or
+                divisor_init >= 1 << divisor_bits):
+            raise ValueError(f"Initial divisor must be an integer from 1 to "
+                             f"{(1 << divisor_bits) - 1}, not {divisor_init!r}")
+        self._divisor_bits = divisor_bits
+        super().__init__({
+            "rx":      In(1, init=arch.MARK),
+            "divisor": In(divisor_bits, init=divisor_init),
+            "o":       Out(stream.Signature(RxByte())),
+        })
+
+    def elaborate(self, platform):
+        m = Module()
+
+        line = Signal(init=arch.MARK)
+        m.submodules.sync = FFSynchronizer(self.rx, line, init=arch.MARK)
+
+        # Oversampling tick: one every `divisor` cycles.
+        count = Signal(self._divisor_bits)
+        tick  = Signal()
+        m.d.comb += tick.eq(count + 1 >= self.divisor)
+        with m.If(tick):
+            m.d.sync += count.eq(0)
+        with m.Else():
+            m.d.sync += count.eq(count + 1)
+
+        phase  = Signal(range(arch.OVERSAMPLING))    # tick within the bit, 0 = first sample
+        bit    = Signal(range(arch.CHARACTER_BITS))  # 0 = start, 1..8 = data, 9 = stop
+        votes  = Signal(len(arch.VOTE_TICKS) - 1)
+        shreg  = Signal(arch.DATA_BITS)
+        first_vote, *_, last_vote = arch.VOTE_TICKS
+
+        # The majority of the earlier votes and the sample taken now.
+        value = Signal()
+        m.d.comb += value.eq((votes[0] & votes[1]) | (votes[0] & line) | (votes[1] & line))
+
+        # Emit: hold the character until it is taken; a newer one replaces it (overrun).
+        emit  = Signal()
+        ferr  = Signal()
+        with m.If(emit):
+            m.d.sync += [
+                self.o.valid.eq(1),
+                self.o.payload.data.eq(shreg),
+                self.o.payload.framing_error.eq(ferr),
+                self.o.payload.brk.eq(ferr & (shreg == 0)),
+                self.o.payload.overrun.eq(self.o.valid & ~self.o.ready),
+            ]
+        with m.Elif(self.o.ready):
+            m.d.sync += self.o.valid.eq(0)
+
+        state = Signal(_State)
+        with m.Switch(state):
+            with m.Case(_State.IDLE):
+                # Waits for a sample at space: the possible start of a start bit.
+                with m.If(tick & (line == arch.SPACE)):
+                    m.d.sync += [
+                        phase.eq(1),
+                        bit.eq(0),
+                        state.eq(_State.RECEIVE),
+                    ]
+
+            with m.Case(_State.RECEIVE):
+                # Waits for the middle of each bit, votes, and moves on at the bit's end.
+                with m.If(tick):
+                    m.d.sync += phase.eq(phase + 1)
+                    with m.If((phase >= first_vote) & (phase < last_vote)):
+                        m.d.sync += votes.eq(Cat(votes[1:], line))
+                    with m.If(phase == last_vote):
+                        with m.If(bit == 0):
+                            with m.If(value != arch.SPACE):
+                                # A glitch, not a start bit.
+                                m.d.sync += state.eq(_State.IDLE)
+                        with m.Elif(bit <= arch.DATA_BITS):
+                            m.d.sync += shreg.eq(Cat(shreg[1:], value))
+                        with m.Else():
+                            # The stop bit decides at its middle, so the next start bit is
+                            # seen on time even from a fast transmitter.
+                            m.d.comb += [
+                                emit.eq(1),
+                                ferr.eq(value != arch.MARK),
+                            ]
+                            with m.If(value == arch.MARK):
+                                m.d.sync += state.eq(_State.IDLE)
+                            with m.Else():
+                                m.d.sync += state.eq(_State.WAIT_MARK)
+                    with m.If(phase == arch.OVERSAMPLING - 1):
+                        m.d.sync += bit.eq(bit + 1)
+
+            with m.Case(_State.WAIT_MARK):
+                # Waits for the line to return to mark after a framing error or break.
+                with m.If(tick & (line == arch.MARK)):
+                    m.d.sync += state.eq(_State.IDLE)
+
+        return m

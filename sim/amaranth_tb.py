@@ -1,0 +1,109 @@
+"""Amaranth simulator building blocks: line drivers and stream sources and sinks.
+
+They are edge-driven where they can be (a line segment is one `delay`, an idle output stream
+is one `changed`), because per-cycle Python is what limits the simulator's speed.
+"""
+
+import contextlib
+import os
+from pathlib import Path
+
+from amaranth.sim import Simulator
+
+
+__all__ = ["CLOCK_PERIOD", "run_simulation", "drive_line", "feed_stream", "collect_frames"]
+
+#: Simulated clock period (50 MHz, as the boards' oscillators).
+CLOCK_PERIOD = 20e-9
+
+#: Set to a directory to get a VCD of every Amaranth simulation written there.
+VCD_ENV = "MAGLOG_VCD_DIR"
+
+
+def run_simulation(dut, testbenches, *, background=(), name="sim", vcd_dir=None,
+                   deadline=None):
+    """Simulate ``dut`` with the given async testbenches (critical) and background ones.
+
+    A VCD is written into ``vcd_dir`` (or ``$MAGLOG_VCD_DIR``) when one is given: never into
+    the working tree by default. ``deadline`` (seconds of simulated time) turns a hang into
+    a ``TimeoutError``.
+    """
+    sim = Simulator(dut)
+    sim.add_clock(CLOCK_PERIOD)
+    for tb in testbenches:
+        sim.add_testbench(tb)
+    for tb in background:
+        sim.add_testbench(tb, background=True)
+    if deadline is not None:
+        async def watchdog(ctx):
+            await ctx.delay(deadline)
+            raise TimeoutError(f"simulation '{name}' did not finish within {deadline} s "
+                               f"of simulated time")
+        sim.add_testbench(watchdog, background=True)
+    vcd_dir = vcd_dir or os.environ.get(VCD_ENV)
+    if vcd_dir:
+        path = Path(vcd_dir) / f"{name}.vcd"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        writer = sim.write_vcd(str(path))
+    else:
+        writer = contextlib.nullcontext()
+    with writer:
+        sim.run()
+
+
+async def drive_line(ctx, line, segments):
+    """Drive a serial line through ``(level, cycles)`` segments (see sim.uart_line)."""
+    for level, cycles in segments:
+        ctx.set(line, level)
+        await ctx.delay(cycles * CLOCK_PERIOD)
+
+
+async def feed_stream(ctx, stream, payloads, *, hold=None):
+    """Offer each payload on ``stream`` until it is taken; ``hold(i)`` idle cycles before i."""
+    for index, payload in enumerate(payloads):
+        if hold is not None:
+            for _ in range(hold(index)):
+                ctx.set(stream.valid, 0)
+                await ctx.tick()
+        ctx.set(stream.payload, payload)
+        ctx.set(stream.valid, 1)
+        await ctx.tick().until(stream.ready)
+    ctx.set(stream.valid, 0)
+
+
+async def collect_frames(ctx, stream, sink, *, fields=("data",), ready=None):
+    """Gather frames from a ``last``-marked byte stream into ``sink`` (a list).
+
+    Each frame is appended as ``bytes`` when ``fields`` is ``("data",)``, otherwise as
+    ``(bytes, {field: value of the last byte})``. ``ready(cycle)`` gives backpressure; without
+    it the sink is always ready and sleeps while the stream is idle.
+    """
+    current = bytearray()
+    cycle = 0
+
+    def accept(payload):
+        current.append(payload.data)
+        if payload.last:
+            if fields == ("data",):
+                sink.append(bytes(current))
+            else:
+                sink.append((bytes(current), {f: getattr(payload, f) for f in fields
+                                              if f != "data"}))
+            current.clear()
+
+    if ready is None:
+        ctx.set(stream.ready, 1)
+        while True:
+            if not ctx.get(stream.valid):
+                await ctx.changed(stream.valid)
+            _, _, valid, payload = await ctx.tick().sample(stream.valid, stream.payload)
+            if valid:
+                accept(payload)
+    else:
+        while True:
+            rdy = bool(ready(cycle))
+            ctx.set(stream.ready, rdy)
+            _, _, valid, payload = await ctx.tick().sample(stream.valid, stream.payload)
+            cycle += 1
+            if valid and rdy:
+                accept(payload)

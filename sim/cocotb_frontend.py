@@ -1,0 +1,176 @@
+"""cocotb bench for the serial front end's generated Verilog.
+
+Run by :func:`maglog.sim.frontend_run.run_frontend` through ``cocotb_tools.runner``; the
+stimulus comes in as a JSON file named by ``$MAGLOG_STIMULUS`` and the result goes out to
+``$MAGLOG_RESULT``. Serial lines are driven by cocotbext-uart's ``UartSource`` (a bus
+functional model written by someone else) for plain byte streams, or segment by segment
+for line faults; frames are checked in order against the expected ones, per channel.
+Python runs per bit and per output byte, never per clock cycle while the lines are idle.
+"""
+
+import json
+import logging
+import os
+
+import cocotb
+from cocotb.clock import Clock
+from cocotb.handle import Immediate
+from cocotb.simtime import get_sim_time
+from cocotb.triggers import ReadOnly, RisingEdge, Timer
+from cocotbext.uart import UartSource
+
+
+CLOCK_NS = 20
+
+
+class _LineBit:
+    """One bit of the packed ``uart_rx`` vector, with the handle interface UartSource uses.
+
+    Every write re-drives the whole vector from a shared shadow, so two sources that change
+    their bits in the same time step cannot undo each other.
+    """
+    def __init__(self, vector, shadow, index):
+        self._vector = vector
+        self._shadow = shadow
+        self._index = index
+        self._path = f"{vector._path}[{index}]"
+
+    def _drive(self, level, immediate):
+        if level:
+            self._shadow[0] |= 1 << self._index
+        else:
+            self._shadow[0] &= ~(1 << self._index)
+        if immediate:
+            self._vector.value = Immediate(self._shadow[0])
+        else:
+            self._vector.value = self._shadow[0]
+
+    def setimmediatevalue(self, level):
+        self._drive(int(level), True)
+
+    @property
+    def value(self):
+        return (self._shadow[0] >> self._index) & 1
+
+    @value.setter
+    def value(self, level):
+        self._drive(int(level), False)
+
+
+class FrameMonitor:
+    """Collects frames from the merged output stream and checks them in order per channel."""
+    def __init__(self, dut, expected):
+        self._dut = dut
+        self.frames = []                       # (channel, bytes) in arrival order
+        self.mismatches = []
+        self._expected = [list(map(bytes.fromhex, e)) if e is not None else None
+                          for e in expected]
+        self._seen = [0] * len(expected)
+        self._current = bytearray()
+
+    def _check(self, channel, frame):
+        expected = self._expected[channel]
+        if expected is None:
+            return
+        index = self._seen[channel]
+        self._seen[channel] += 1
+        if index >= len(expected):
+            self.mismatches.append(f"channel {channel}: unexpected extra frame {frame!r}")
+        elif expected[index] != frame:
+            self.mismatches.append(f"channel {channel} frame {index}: got {frame!r}, "
+                                   f"expected {expected[index]!r}")
+
+    def missing(self):
+        return [f"channel {k}: {len(e) - self._seen[k]} expected frames never arrived"
+                for k, e in enumerate(self._expected)
+                if e is not None and self._seen[k] < len(e)]
+
+    async def run(self):
+        dut = self._dut
+        dut.o__ready.value = 1
+        data_bits = 8
+        while True:
+            await ReadOnly()
+            if str(dut.o__valid.value) != "1":
+                await RisingEdge(dut.o__valid)
+                await ReadOnly()
+            payload = int(dut.o__payload.value)
+            data = payload & 0xFF
+            last = (payload >> data_bits) & 1
+            channel = payload >> (data_bits + 1)
+            self._current.append(data)
+            if last:
+                frame = bytes(self._current)
+                self._current.clear()
+                self.frames.append((channel, frame))
+                self._check(channel, frame)
+            await RisingEdge(dut.clk)
+
+
+async def _drive_segments(line, segments):
+    for level, cycles in segments:
+        line.value = level
+        await Timer(cycles * CLOCK_NS, unit="ns")
+
+
+async def _count_flushes(dut, counter):
+    while True:
+        await RisingEdge(dut.flush)
+        counter[0] += 1
+
+
+def _read_counters(dut, channels, names):
+    return [{name: int(getattr(dut, f"counters__{k}__{name}").value) for name in names}
+            for k in range(channels)]
+
+
+@cocotb.test()
+async def run_stimulus(dut):
+    """Drive the stimulus file's lines, collect and check the frames, write the result."""
+    logging.getLogger("cocotb.maglog_frontend").setLevel(logging.WARNING)
+    with open(os.environ["MAGLOG_STIMULUS"]) as f:
+        stimulus = json.load(f)
+    channels = stimulus["channels"]
+    n = len(channels)
+
+    Clock(dut.clk, CLOCK_NS, unit="ns", impl="gpi").start()
+    shadow = [(1 << n) - 1]
+    dut.uart_rx.value = shadow[0]
+    for k, channel in enumerate(channels):
+        getattr(dut, f"divisor__{k}").value = channel["divisor"]
+    dut.o__ready.value = 1
+    dut.rst.value = 1
+    for _ in range(4):
+        await RisingEdge(dut.clk)
+    dut.rst.value = 0
+
+    monitor = FrameMonitor(dut, [c.get("expected") for c in channels])
+    cocotb.start_soon(monitor.run())
+    flushes = [0]
+    cocotb.start_soon(_count_flushes(dut, flushes))
+
+    drivers = []
+    for k, channel in enumerate(channels):
+        line = _LineBit(dut.uart_rx, shadow, k)
+        if "segments" in channel:
+            drivers.append(cocotb.start_soon(_drive_segments(line, channel["segments"])))
+        else:
+            source = UartSource(line, baud=channel["baud"])
+            source.log.setLevel(logging.WARNING)
+            await source.write(bytes.fromhex(channel["bytes"]))
+            drivers.append(cocotb.start_soon(source.wait()))
+    for driver in drivers:
+        await driver
+    # Let the last characters through the receivers and the frames through the FIFOs.
+    await Timer(stimulus.get("drain_ns", 100_000), unit="ns")
+
+    result = {
+        "frames": [[channel, frame.hex()] for channel, frame in monitor.frames],
+        "counters": _read_counters(dut, n, stimulus["counter_names"]),
+        "flushes": flushes[0],
+        "cycles": int(get_sim_time(unit="ns")) // CLOCK_NS,
+        "mismatches": monitor.mismatches + monitor.missing(),
+    }
+    with open(os.environ["MAGLOG_RESULT"], "w") as f:
+        json.dump(result, f)
+    assert not result["mismatches"], "\n".join(result["mismatches"][:20])
