@@ -11,7 +11,8 @@ from pathlib import Path
 from amaranth.sim import Simulator
 
 
-__all__ = ["CLOCK_PERIOD", "run_simulation", "drive_line", "feed_stream", "collect_frames"]
+__all__ = ["CLOCK_PERIOD", "run_simulation", "drive_line", "feed_stream", "collect_frames",
+           "collect_payloads"]
 
 #: Simulated clock period (50 MHz, as the boards' oscillators).
 CLOCK_PERIOD = 20e-9
@@ -107,3 +108,22 @@ async def collect_frames(ctx, stream, sink, *, fields=("data",), ready=None):
             cycle += 1
             if valid and rdy:
                 accept(payload)
+
+
+async def collect_payloads(ctx, stream, sink, *, ready=None):
+    """Append every payload taken from ``stream`` to ``sink``; ``ready(cycle)`` as above."""
+    cycle = 0
+    if ready is None:
+        ctx.set(stream.ready, 1)
+    while True:
+        if ready is None:
+            if not ctx.get(stream.valid):
+                await ctx.changed(stream.valid)
+            rdy = True
+        else:
+            rdy = bool(ready(cycle))
+            ctx.set(stream.ready, rdy)
+        _, _, valid, payload = await ctx.tick().sample(stream.valid, stream.payload)
+        cycle += 1
+        if valid and rdy:
+            sink.append(payload)
