@@ -42,8 +42,12 @@ class UartRx(wiring.Component):
     the middle of the bit (majority of the three middle samples), so a glitch shorter than
     about half a bit is ignored. Each bit is the majority of its three middle samples.
 
-    After a framing error or a break the receiver waits for the line to return to mark
-    before it looks for the next start bit, and reports the character once.
+    A character whose stop bit is space is reported with ``framing_error``. In a continuous
+    stream the next start bit then follows the damaged stop bit with no edge between them,
+    so the receiver keeps its bit timing and takes the next bit slot as a start bit if the
+    line is space in its middle (and returns to hunting for an edge otherwise). After a
+    break (a whole character of space) it waits for the line to return to mark instead, and
+    reports the break once.
 
     Parameters
     ----------
@@ -148,10 +152,14 @@ class UartRx(wiring.Component):
                             ]
                             with m.If(value == arch.MARK):
                                 m.d.sync += state.eq(_State.IDLE)
-                            with m.Else():
+                            with m.Elif(shreg == 0):
+                                # A break: nothing to align to until the line is mark.
                                 m.d.sync += state.eq(_State.WAIT_MARK)
+                            # Otherwise a damaged stop bit: in a continuous stream the next
+                            # start bit follows it with no edge between them, so keep counting
+                            # and take the next bit slot as a start bit if it is space there.
                     with m.If(phase == arch.OVERSAMPLING - 1):
-                        m.d.sync += bit.eq(bit + 1)
+                        m.d.sync += bit.eq(Mux(bit == arch.CHARACTER_BITS - 1, 0, bit + 1))
 
             with m.Case(_State.WAIT_MARK):
                 # Waits for the line to return to mark after a framing error or break.
