@@ -129,7 +129,7 @@ class FrontEndBench:
         self.backend = backend
         self._params = dict(max_frame=max_frame, fifo_depth=fifo_depth, clk_freq=clk_freq)
         self.fifo_depth = fifo_depth
-        self.build_dir = Path(build_dir) if build_dir is not None else None
+        self.build_dir = Path(build_dir).resolve() if build_dir is not None else None
         self._built = False
         self._runs = 0
 
@@ -195,6 +195,9 @@ class FrontEndBench:
                 detail = "; ".join(json.loads(result_file.read_text())["mismatches"][:5])
             raise RuntimeError(f"the {self.backend} run failed (exit {exit.code}): "
                                f"{detail or 'see ' + str(run_dir / 'sim.log')}") from None
+        if not result_file.exists():
+            raise RuntimeError(f"the {self.backend} run wrote no result; see "
+                               f"{run_dir / 'sim.log'}")
         raw = json.loads(result_file.read_text())
         return FrontEndResult(
             frames=[(k, bytes.fromhex(frame)) for k, frame in raw["frames"]],
