@@ -37,26 +37,36 @@ class FrameFifo(wiring.Component):
     w_en : ``In(1)``
         Write ``w_data`` (with ``w_last``) after the uncommitted bytes. Ignored when there
         is no room (``full``, or ``full_committed`` with ``discard``): the writer must then
-        discard the frame.
+        discard the frame, or a later commit would make it readable with a byte missing.
     w_data, w_last : ``In(8)``, ``In(1)``
     commit : ``In(1)``
         Make every byte written so far readable, a byte written in the same cycle included.
     discard : ``In(1)``
         Forget the uncommitted bytes. A byte written in the same cycle is kept as the first
         byte of the next frame (so a frame can be dropped and the next one started at once).
+        In one cycle the order is: discard, then write, then commit.
     full : ``Out(1)``
         No room after the uncommitted bytes.
     full_committed : ``Out(1)``
         No room even after a discard: the committed bytes fill the FIFO.
     o : ``Out(stream.Signature(FrameByte))``
         Committed bytes.
+    wr_ptr, commit_ptr, rd_ptr : Signal
+        The write, commit and read pointers (white box, for formal proofs and probes).
     level : ``Out(range(depth + 1))``
-        Bytes held, committed or not (the one in the output register excluded).
+        Bytes held, committed or not. The output register holds one more committed byte
+        (so up to ``depth + 1`` bytes are held in all).
     """
     def __init__(self, *, depth=1024):
         if not isinstance(depth, int) or depth < 2 or depth & (depth - 1):
             raise ValueError(f"Depth must be a power of two, at least 2, not {depth!r}")
         self._depth = depth
+        # Pointers carry one extra bit so that full and empty differ. They are attributes
+        # (not locals of `elaborate`) so that formal invariants and debug probes can name them.
+        abits = ceil_log2(depth)
+        self.wr_ptr     = Signal(abits + 1)
+        self.commit_ptr = Signal(abits + 1)
+        self.rd_ptr     = Signal(abits + 1)
         super().__init__({
             "w_en":    In(1),
             "w_data":  In(8),
@@ -81,10 +91,7 @@ class FrameFifo(wiring.Component):
         wport = mem.write_port()
         rport = mem.read_port(transparent_for=())
 
-        # Pointers carry one extra bit so that full and empty differ.
-        wr_ptr     = Signal(abits + 1)
-        commit_ptr = Signal(abits + 1)
-        rd_ptr     = Signal(abits + 1)
+        wr_ptr, commit_ptr, rd_ptr = self.wr_ptr, self.commit_ptr, self.rd_ptr
 
         w_addr = Signal(abits + 1)
         m.d.comb += [

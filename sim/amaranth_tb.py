@@ -11,8 +11,8 @@ from pathlib import Path
 from amaranth.sim import Simulator
 
 
-__all__ = ["CLOCK_PERIOD", "run_simulation", "drive_line", "feed_stream", "collect_frames",
-           "collect_payloads"]
+__all__ = ["CLOCK_PERIOD", "run_simulation", "drive_line", "feed_stream", "FrameAssembler",
+           "collect_frames", "collect_payloads"]
 
 #: Simulated clock period (50 MHz, as the boards' oscillators).
 CLOCK_PERIOD = 20e-9
@@ -72,46 +72,40 @@ async def feed_stream(ctx, stream, payloads, *, hold=None):
     ctx.set(stream.valid, 0)
 
 
-async def collect_frames(ctx, stream, sink, *, fields=("data",), ready=None):
-    """Gather frames from a ``last``-marked byte stream into ``sink`` (a list).
+class FrameAssembler:
+    """A sink for :func:`collect_payloads` that joins ``last``-marked bytes into frames.
 
-    Each frame is appended as ``bytes`` when ``fields`` is ``("data",)``, otherwise as
-    ``(bytes, {field: value of the last byte})``. ``ready(cycle)`` gives backpressure; without
-    it the sink is always ready and sleeps while the stream is idle.
+    Each frame is appended to ``frames`` as ``bytes`` when ``fields`` is ``("data",)``,
+    otherwise as ``(bytes, {field: value of the frame's last byte})``.
     """
-    current = bytearray()
-    cycle = 0
+    def __init__(self, frames, fields=("data",)):
+        self.frames = frames
+        self._fields = [f for f in fields if f != "data"]
+        self._current = bytearray()
 
-    def accept(payload):
-        current.append(payload.data)
+    def append(self, payload):
+        self._current.append(payload.data)
         if payload.last:
-            if fields == ("data",):
-                sink.append(bytes(current))
+            frame = bytes(self._current)
+            self._current.clear()
+            if self._fields:
+                self.frames.append((frame, {f: getattr(payload, f) for f in self._fields}))
             else:
-                sink.append((bytes(current), {f: getattr(payload, f) for f in fields
-                                              if f != "data"}))
-            current.clear()
+                self.frames.append(frame)
 
-    if ready is None:
-        ctx.set(stream.ready, 1)
-        while True:
-            if not ctx.get(stream.valid):
-                await ctx.changed(stream.valid)
-            _, _, valid, payload = await ctx.tick().sample(stream.valid, stream.payload)
-            if valid:
-                accept(payload)
-    else:
-        while True:
-            rdy = bool(ready(cycle))
-            ctx.set(stream.ready, rdy)
-            _, _, valid, payload = await ctx.tick().sample(stream.valid, stream.payload)
-            cycle += 1
-            if valid and rdy:
-                accept(payload)
+
+async def collect_frames(ctx, stream, sink, *, fields=("data",), ready=None):
+    """Gather frames from a ``last``-marked byte stream into ``sink`` (a list); see
+    :class:`FrameAssembler` for the form and :func:`collect_payloads` for ``ready``."""
+    await collect_payloads(ctx, stream, FrameAssembler(sink, fields), ready=ready)
 
 
 async def collect_payloads(ctx, stream, sink, *, ready=None):
-    """Append every payload taken from ``stream`` to ``sink``; ``ready(cycle)`` as above."""
+    """Append every payload taken from ``stream`` to ``sink``.
+
+    ``ready(cycle)`` gives backpressure; without it the sink is always ready and sleeps
+    while the stream is idle (one ``changed`` trigger instead of a tick per cycle).
+    """
     cycle = 0
     if ready is None:
         ctx.set(stream.ready, 1)

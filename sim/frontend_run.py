@@ -16,12 +16,14 @@ from pathlib import Path
 
 from ..hw.arch import frames as arch_frames
 from ..hw.arch import uart as arch_uart
+from ..hw.frame_filter import ChannelKind, FrameFilter
 from ..hw.frontend import ChannelConfig, DEFAULT_CHANNELS, FrontEnd, TOPLEVEL_NAME, generate_verilog
 from . import amaranth_tb
 from .uart_line import encode
 
 
-__all__ = ["BACKENDS", "Segments", "ChannelStimulus", "FrontEndResult", "FrontEndBench", "run_frontend"]
+__all__ = ["BACKENDS", "Segments", "ChannelStimulus", "FrontEndResult", "FrontEndBench",
+           "run_frontend", "run_frame_filter"]
 
 BACKENDS = ("amaranth", "icarus", "verilator")
 #: cocotb's clock period; the Amaranth simulator's is the same.
@@ -225,18 +227,13 @@ class FrontEndBench:
                 counters.append({name: ctx.get(getattr(dut.counters[k], name))
                                  for name in arch_frames.COUNTER_NAMES})
 
+        class Tagged:
+            def append(self, item):
+                frame, tags = item
+                frames.append((tags["channel"], frame))
+
         async def monitor(ctx):
-            current = bytearray()
-            ctx.set(dut.o.ready, 1)
-            while True:
-                if not ctx.get(dut.o.valid):
-                    await ctx.changed(dut.o.valid)
-                _, _, valid, payload = await ctx.tick().sample(dut.o.valid, dut.o.payload)
-                if valid:
-                    current.append(payload.data)
-                    if payload.last:
-                        frames.append((payload.channel, bytes(current)))
-                        current.clear()
+            await amaranth_tb.collect_frames(ctx, dut.o, Tagged(), fields=("data", "channel"))
 
         async def flush_counter(ctx):
             while True:
@@ -274,3 +271,35 @@ def run_frontend(stimuli, *, channels=DEFAULT_CHANNELS, backend="amaranth", buil
     """Build the front end for ``backend`` and run ``stimuli`` (one per channel) once."""
     bench = FrontEndBench(channels, backend=backend, build_dir=build_dir, **params)
     return bench.run(stimuli)
+
+
+def run_frame_filter(kind, events, *, max_frame=arch_frames.DEFAULT_MAX_FRAME, fifo_depth=1024,
+                     ready=None, hold=None, tail_cycles=None):
+    """Run a lone FrameFilter on the Amaranth simulator.
+
+    ``events`` are bytes or ``(byte, error)`` pairs, offered one a cycle (``hold(i)`` idle
+    cycles before event i); ``ready(cycle)`` is the sink's backpressure. Returns the kept
+    frames, the counters after ``tail_cycles`` more cycles, and the number of flush events.
+    """
+    dut = FrameFilter(kind, max_frame=max_frame, fifo_depth=fifo_depth)
+    events = [(e, False) if isinstance(e, int) else e for e in events]
+    frames, counters, flushes = [], {}, [0]
+
+    async def source(ctx):
+        await amaranth_tb.feed_stream(ctx, dut.i, [{"data": b, "framing_error": int(err)}
+                                       for b, err in events], hold=hold)
+        await ctx.tick().repeat(tail_cycles or fifo_depth + 16)
+        counters.update({name: ctx.get(getattr(dut.counters, name))
+                         for name in arch_frames.COUNTER_NAMES})
+
+    async def sink(ctx):
+        await amaranth_tb.collect_frames(ctx, dut.o, frames, ready=ready)
+
+    async def flush(ctx):
+        while True:
+            await ctx.posedge(dut.flush)
+            flushes[0] += 1
+
+    amaranth_tb.run_simulation(dut, [source], background=[sink, flush],
+                               name=f"filter_{ChannelKind(kind).value}")
+    return frames, counters, flushes[0]

@@ -14,9 +14,8 @@ from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
 from maglog.sim.captures import DATA_ENV_VAR, capture_files, load_capture
 from maglog.sim.frontend_run import ChannelStimulus, FrontEndBench, Segments
+from maglog.sim.frontend_run import run_frame_filter as run_filter
 from maglog.sim.reference import reference_filter
-
-from test_frame_filter import run_filter
 
 CAPTURES = capture_files()
 NO_DATA = (f"no GPS captures: the shared data folder (../shared/data beside the repository, "

@@ -191,8 +191,7 @@ class FrameFifoSpec(Elaboratable):
         if self.invariants:
             # Pointers count bytes modulo 2 * depth; the n-th byte sits in o's register or in
             # the memory cell `position` bytes after the next one to be read.
-            wr_ptr, commit_ptr, rd_ptr = (fifo.probe_wr_ptr, fifo.probe_commit_ptr,
-                                          fifo.probe_rd_ptr)
+            wr_ptr, commit_ptr, rd_ptr = fifo.wr_ptr, fifo.commit_ptr, fifo.rd_ptr
             modulo = 2 * depth - 1
             in_register = fifo.o.valid & (position == 0)
             m.d.comb += [
@@ -228,30 +227,18 @@ class FrameFifoSpec(Elaboratable):
 
 
 class ProbedFrameFifo(FrameFifo):
-    """FrameFifo, unchanged, with copies of its pointers and a read port on its memory.
+    """FrameFifo, unchanged, with one more (combinational, read-only) port on its memory.
 
-    The invariants that let k-induction close are about FrameFifo's pointers and the memory
-    cell that holds the tracked byte. Those are local to ``FrameFifo.elaborate()``: they are
-    found by name among the signals its module drives, and the memory gets one more
-    (combinational, read-only) port.
+    The invariants that let k-induction close are about FrameFifo's pointers (its white-box
+    attributes) and the memory cell that holds the tracked byte.
     """
-    POINTERS = ("wr_ptr", "commit_ptr", "rd_ptr")
-
     def __init__(self, *, depth):
         super().__init__(depth=depth)
-        for name in self.POINTERS:
-            setattr(self, f"probe_{name}", Signal(ceil_log2(depth) + 1, name=f"probe_{name}"))
         self.peek_addr = Signal(range(depth))
         self.peek_data = Signal(FrameByte())
 
     def elaborate(self, platform):
         m = super().elaborate(platform)
-        driven = {signal.name: signal for signal in m._driving}
-        for name in self.POINTERS:
-            if name not in driven:
-                raise LookupError(f"FrameFifo no longer drives a signal named {name!r}; "
-                                  f"update the invariants")
-            m.d.comb += getattr(self, f"probe_{name}").eq(driven[name])
         peek = m.submodules.mem.read_port(domain="comb")
         m.d.comb += [peek.addr.eq(self.peek_addr), self.peek_data.eq(peek.data)]
         return m

@@ -5,36 +5,11 @@ import random
 import pytest
 
 from maglog.hw.arch.frames import COUNTER_NAMES
-from maglog.hw.frame_filter import ChannelKind, FrameFilter
+from maglog.hw.frame_filter import ChannelKind
 from maglog.sim import sentences
-from maglog.sim.amaranth_tb import collect_frames, feed_stream, run_simulation
+from maglog.sim.frontend_run import run_frame_filter as run_filter
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.streams import demo_streams
-
-
-def run_filter(kind, events, *, max_frame=128, fifo_depth=1024, ready=None, hold=None,
-               tail_cycles=None):
-    """Feed ``(byte, error)`` events, one a cycle; return (frames, counters, flushes)."""
-    dut = FrameFilter(kind, max_frame=max_frame, fifo_depth=fifo_depth)
-    events = [(e, False) if isinstance(e, int) else e for e in events]
-    frames, counters, flushes = [], {}, [0]
-
-    async def source(ctx):
-        await feed_stream(ctx, dut.i, [{"data": b, "framing_error": int(err)}
-                                       for b, err in events], hold=hold)
-        await ctx.tick().repeat(tail_cycles or fifo_depth + 16)
-        counters.update({name: ctx.get(getattr(dut.counters, name)) for name in COUNTER_NAMES})
-
-    async def sink(ctx):
-        await collect_frames(ctx, dut.o, frames, ready=ready)
-
-    async def flush(ctx):
-        while True:
-            await ctx.posedge(dut.flush)
-            flushes[0] += 1
-
-    run_simulation(dut, [source], background=[sink, flush], name=f"filter_{kind.value}")
-    return frames, counters, flushes[0]
 
 
 def check_against_reference(kind, events, **kwargs):
