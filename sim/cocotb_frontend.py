@@ -11,6 +11,7 @@ Python runs per bit and per output byte, never per clock cycle while the lines a
 import json
 import logging
 import os
+import random
 
 import cocotb
 from cocotb.clock import Clock
@@ -85,26 +86,39 @@ class FrameMonitor:
                 for k, e in enumerate(self._expected)
                 if e is not None and self._seen[k] < len(e)]
 
-    async def run(self):
-        dut = self._dut
-        dut.o__ready.value = 1
+    def _take(self, payload):
         data_bits = 8
-        while True:
-            await ReadOnly()
-            if str(dut.o__valid.value) != "1":
-                await RisingEdge(dut.o__valid)
-                await ReadOnly()
-            payload = int(dut.o__payload.value)
-            data = payload & 0xFF
-            last = (payload >> data_bits) & 1
+        self._current.append(payload & 0xFF)
+        if (payload >> data_bits) & 1:
             channel = payload >> (data_bits + 1)
-            self._current.append(data)
-            if last:
-                frame = bytes(self._current)
-                self._current.clear()
-                self.frames.append((channel, frame))
-                self._check(channel, frame)
-            await RisingEdge(dut.clk)
+            frame = bytes(self._current)
+            self._current.clear()
+            self.frames.append((channel, frame))
+            self._check(channel, frame)
+
+    async def run(self, pauses=None):
+        """Take bytes as they come; ``pauses`` (an iterator of bools) holds ``o__ready`` low
+        on the cycles it yields True while a byte is offered. Asleep while nothing is."""
+        dut = self._dut
+        await RisingEdge(dut.clk)
+        while True:
+            # A writable phase at the start of a cycle: choose ready for this cycle's edge.
+            ready = pauses is None or not next(pauses)
+            dut.o__ready.value = int(ready)
+            await ReadOnly()
+            if str(dut.o__valid.value) == "1":
+                if ready:
+                    self._take(int(dut.o__payload.value))
+                await RisingEdge(dut.clk)
+            else:
+                await RisingEdge(dut.o__valid)
+
+
+def pause_generator(probability, seed):
+    """Seeded pauses for backpressure: True with the given probability."""
+    rng = random.Random(seed)
+    while True:
+        yield rng.random() < probability
 
 
 async def _drive_segments(line, segments):
@@ -159,7 +173,9 @@ async def run_stimulus(dut):
     dut.rst.value = 0
 
     monitor = FrameMonitor(dut, [c.get("expected") for c in channels])
-    cocotb.start_soon(monitor.run())
+    backpressure = stimulus.get("backpressure", 0.0)
+    pauses = pause_generator(backpressure, stimulus.get("seed", 0)) if backpressure else None
+    cocotb.start_soon(monitor.run(pauses))
     flushes = [0]
     cocotb.start_soon(_count_flushes(dut, flushes))
 

@@ -9,6 +9,7 @@ against the reference filter.
 import contextlib
 import json
 import os
+import random
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -123,7 +124,8 @@ class FrontEndBench:
     """One front-end configuration, built once per backend, run on many stimuli."""
 
     def __init__(self, channels=DEFAULT_CHANNELS, *, backend="amaranth", build_dir=None,
-                 max_frame=arch_frames.DEFAULT_MAX_FRAME, fifo_depth=1024, clk_freq=50e6):
+                 max_frame=arch_frames.DEFAULT_MAX_FRAME, fifo_depth=1024, clk_freq=50e6,
+                 backpressure=0.0, seed=0):
         if backend not in BACKENDS:
             raise ValueError(f"Backend must be one of {', '.join(BACKENDS)}, not {backend!r}")
         self.channels = tuple(c if isinstance(c, ChannelConfig) else ChannelConfig(*c)
@@ -132,11 +134,19 @@ class FrontEndBench:
         self._params = dict(max_frame=max_frame, fifo_depth=fifo_depth, clk_freq=clk_freq)
         self.fifo_depth = fifo_depth
         self.build_dir = Path(build_dir).resolve() if build_dir is not None else None
+        if not 0.0 <= backpressure < 1.0:
+            raise ValueError(f"Backpressure must be a probability below 1, not {backpressure!r}")
+        self.backpressure = backpressure
+        self.seed = seed
         self._built = False
         self._runs = 0
 
     def make_dut(self):
         return FrontEnd(self.channels, **self._params)
+
+    def _drain(self, stimuli):
+        # Backpressure slows the output: allow for the bytes still queued to leave.
+        return round(_drain_cycles(stimuli, self.fifo_depth) / (1 - self.backpressure))
 
     # -- cocotb ------------------------------------------------------------------------
 
@@ -181,7 +191,9 @@ class FrontEndBench:
         stimulus_file.write_text(json.dumps({
             "channels": channels,
             "counter_names": list(arch_frames.COUNTER_NAMES),
-            "drain_ns": _drain_cycles(stimuli, self.fifo_depth) * CLOCK_NS,
+            "drain_ns": self._drain(stimuli) * CLOCK_NS,
+            "backpressure": self.backpressure,
+            "seed": self.seed,
         }))
         try:
             self._runner.test(test_module="maglog.sim.cocotb_frontend",
@@ -213,7 +225,7 @@ class FrontEndBench:
         frames = []
         flushes = [0]
         counters = []
-        cycles = max(s.line_cycles() for s in stimuli) + _drain_cycles(stimuli, self.fifo_depth)
+        cycles = max(s.line_cycles() for s in stimuli) + self._drain(stimuli)
 
         def line_driver(k, stimulus):
             async def drive(ctx):
@@ -232,8 +244,14 @@ class FrontEndBench:
                 frame, tags = item
                 frames.append((tags["channel"], frame))
 
+        ready = None
+        if self.backpressure:
+            rng = random.Random(self.seed)
+            ready = lambda cycle: rng.random() >= self.backpressure
+
         async def monitor(ctx):
-            await amaranth_tb.collect_frames(ctx, dut.o, Tagged(), fields=("data", "channel"))
+            await amaranth_tb.collect_frames(ctx, dut.o, Tagged(), fields=("data", "channel"),
+                                             ready=ready)
 
         async def flush_counter(ctx):
             while True:

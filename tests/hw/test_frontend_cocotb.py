@@ -62,6 +62,18 @@ def test_demo_flight_scoreboard(bench):
     assert result.flushes == len(reference_filter(Kind.NMEA, data[1]).flushes) > 0
 
 
+@pytest.mark.parametrize("simulator", SIMULATORS)
+def test_output_backpressure_keeps_frames_whole(simulator, tmp_path):
+    require(simulator)
+    streams = demo_streams(seconds=1.0, seed=4)
+    data = [streams[name] for name in NAMES]
+    bench = FrontEndBench(DEFAULT_CHANNELS, backend=simulator, build_dir=tmp_path,
+                          backpressure=0.6, seed=3)
+    stimuli = [ChannelStimulus(divisor=1, data=d, expected=reference_filter(kind, d).frames)
+               for d, kind in zip(data, KINDS)]
+    check(bench.run(stimuli), data)
+
+
 def _mutated(rng, frames):
     """Frames with some damaged by a flipped, inserted or lost byte."""
     out = bytearray()
