@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["RxEvent", "LineTrace", "encode", "decode", "MIN_BREAK_BITS", "GLITCH_MAX_BITS"]
+__all__ = ["RxEvent", "LineTrace", "encode", "decode", "segments_from_levels", "MIN_BREAK_BITS",
+           "GLITCH_MAX_BITS"]
 
 IDLE = 1
 SPACE = 0
@@ -298,3 +299,15 @@ def decode(segments: Iterable[tuple[int, int]], *, bit_cycles: float) -> list[Rx
                 break
             cursor = high
     return events
+
+
+def segments_from_levels(levels) -> list[tuple[int, int]]:
+    """Run-length ``(level, cycles)`` segments of a per-cycle level array (the inverse of
+    :meth:`LineTrace.levels`), for tests that edit a line cycle by cycle."""
+    levels = np.asarray(levels, dtype=np.uint8)
+    if levels.size == 0:
+        return []
+    edges = np.flatnonzero(np.diff(levels)) + 1
+    starts = np.concatenate(([0], edges))
+    lengths = np.diff(np.concatenate((starts, [levels.size])))
+    return [(int(levels[a]), int(n)) for a, n in zip(starts, lengths)]

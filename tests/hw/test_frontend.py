@@ -11,17 +11,7 @@ from maglog.sim import sentences
 from maglog.sim.frontend_run import ChannelStimulus, FrontEndBench
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.streams import demo_streams
-from maglog.sim.uart_line import encode
-
-
-def segments_of(levels):
-    segments = []
-    for level in levels:
-        if segments and segments[-1][0] == level:
-            segments[-1][1] += 1
-        else:
-            segments.append([int(level), 1])
-    return [tuple(s) for s in segments]
+from maglog.sim.uart_line import encode, segments_from_levels
 
 
 def test_demo_flight_matches_reference():
@@ -68,7 +58,7 @@ def test_continuous_stream_loses_only_the_damaged_frame(offset, baud_error):
     stop = clean.byte_starts[damaged] + round(9 * bit)
     levels[stop:stop + round(bit)] = 0
     bench = FrontEndBench([ChannelConfig(ChannelKind.PMAG, 115200)], backend="amaranth")
-    result = bench.run([ChannelStimulus(divisor=1, segments=segments_of(levels))])
+    result = bench.run([ChannelStimulus(divisor=1, segments=segments_from_levels(levels))])
     assert result.frames_of(0) == frames[:2] + frames[3:]
     assert result.counters[0]["uart_error"] == 1
 

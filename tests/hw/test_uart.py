@@ -6,25 +6,35 @@ import pytest
 
 from maglog.hw.uart import UartRx
 from maglog.sim.amaranth_tb import collect_payloads, drive_line, run_simulation
-from maglog.sim.uart_line import RxEvent, encode
+from maglog.sim.uart_line import LineTrace, RxEvent, encode, segments_from_levels
 
 
-def receive(trace, *, divisor, ready=None, idle_cycles=0):
-    """Drive ``trace`` into a UartRx and return what it reports, as RxEvents."""
-    dut = UartRx(divisor_init=divisor)
+def run_rx(steps, *, divisor_init=1, ready=None, tail_cycles=200):
+    """Drive ``(divisor, segments)`` steps into a UartRx (divisor None: leave it); return the
+    payloads it offered and that were taken."""
+    dut = UartRx(divisor_init=divisor_init)
     got = []
 
     async def line(ctx):
-        await drive_line(ctx, dut.rx, trace.segments)
-        await ctx.tick().repeat(idle_cycles + 40 * divisor)
+        for divisor, segments in steps:
+            if divisor is not None:
+                ctx.set(dut.divisor, divisor)
+            await drive_line(ctx, dut.rx, segments)
+        await ctx.tick().repeat(tail_cycles)
 
     async def sink(ctx):
         await collect_payloads(ctx, dut.o, got, ready=ready)
 
     run_simulation(dut, [line], background=[sink], name="uart_rx", deadline=1.0)
-    return [RxEvent(p.data if not (p.framing_error or p.brk or p.overrun) else
-                    (0 if p.brk else p.data),
-                    bool(p.framing_error or p.brk or p.overrun)) for p in got], got
+    return got
+
+
+def receive(trace, *, divisor, ready=None):
+    """Drive ``trace`` into a UartRx and return what it reports as RxEvents, and raw."""
+    got = run_rx([(None, trace.segments)], divisor_init=divisor, ready=ready,
+                 tail_cycles=40 * divisor)
+    return [RxEvent(0 if p.brk else p.data, bool(p.framing_error or p.brk or p.overrun))
+            for p in got], got
 
 
 def same(events, expected):
@@ -65,21 +75,14 @@ def test_glitch_inside_a_bit_is_voted_out():
     divisor = 4
     bit = 16 * divisor
     data = bytes([0x00, 0xFF, 0x5A])
-    clean = encode(data, bit_cycles=bit, gap_bits=1.0).levels()
-    levels = clean.copy()
-    for start in encode(data, bit_cycles=bit, gap_bits=1.0).byte_starts:
+    clean = encode(data, bit_cycles=bit, gap_bits=1.0)
+    levels = clean.levels().copy()
+    for start in clean.byte_starts:
         for k in range(10):
             centre = start + k * bit + bit // 2
             levels[centre:centre + divisor] ^= 1
-    segments = []
-    for level in levels:
-        if segments and segments[-1][0] == level:
-            segments[-1][1] += 1
-        else:
-            segments.append([int(level), 1])
-    trace = type(encode(b"", bit_cycles=bit))(segments=[tuple(s) for s in segments],
-                                             expected=[RxEvent(b) for b in data],
-                                             cycles=len(levels))
+    trace = LineTrace(segments=segments_from_levels(levels), cycles=len(levels),
+                      expected=[RxEvent(b) for b in data])
     events, _ = receive(trace, divisor=divisor)
     assert events == trace.expected
 
@@ -107,39 +110,14 @@ def test_overrun_flags_the_character_that_replaced_an_unread_one():
 
 
 def test_divisor_changes_at_run_time():
-    dut = UartRx(divisor_init=1)
-    got = []
-    fast = encode(b"fast", bit_cycles=16)
-    slow = encode(b"slow", bit_cycles=48)
-
-    async def line(ctx):
-        await drive_line(ctx, dut.rx, fast.segments)
-        ctx.set(dut.divisor, 3)
-        await drive_line(ctx, dut.rx, slow.segments)
-        await ctx.tick().repeat(200)
-
-    async def sink(ctx):
-        await collect_payloads(ctx, dut.o, got)
-
-    run_simulation(dut, [line], background=[sink], name="uart_divisor", deadline=1.0)
+    got = run_rx([(None, encode(b"fast", bit_cycles=16).segments),
+                  (3, encode(b"slow", bit_cycles=48).segments)])
     assert bytes(p.data for p in got) == b"fastslow"
     assert not any(p.framing_error for p in got)
 
 
 def test_divisor_zero_acts_as_one():
-    dut = UartRx(divisor_init=1)
-    got = []
-    trace = encode(b"zero", bit_cycles=16)
-
-    async def line(ctx):
-        ctx.set(dut.divisor, 0)
-        await drive_line(ctx, dut.rx, trace.segments)
-        await ctx.tick().repeat(100)
-
-    async def sink(ctx):
-        await collect_payloads(ctx, dut.o, got)
-
-    run_simulation(dut, [line], background=[sink], name="uart_div0", deadline=1.0)
+    got = run_rx([(0, encode(b"zero", bit_cycles=16).segments)], divisor_init=5)
     assert bytes(p.data for p in got) == b"zero"
 
 
