@@ -20,3 +20,22 @@ CRC16_BITS = 16
 CMD0_LAST_BYTE = 0x95
 CMD17_LAST_BYTE = 0x55
 CRC16_512_FF = 0x7FA1
+
+# -- Command and response framing (host side) ----------------------------------------------
+# Ref: PLSS §4.7.2 "Command Format" (48 bits: start 0, transmission 1, index, argument,
+#      CRC7, end 1) and §4.9 "Responses" (48 bits; R2 136 bits).
+CMD_INDEX_BITS = 6
+CMD_ARGUMENT_BITS = 32
+CMD_BITS = 48
+#: Bits covered by the CRC7 of a command or 48-bit response: start through argument.
+CMD_CRC_LAST = 40
+#: R2: 136 bits; its CRC7 covers the CID/CSD register bits 127..8 (response bits 8..127).
+R2_BITS = 136
+R2_CONTENT_BITS = 128
+R2_CRC_FIRST = 8
+R2_CRC_LAST = 128
+
+# Ref: PLSS §4.12.4 "Timing Values": N_CR (command end to response) 2..64 clocks; N_CC and
+#      N_RC (response end to next command) at least 8 clocks.
+N_CR_MAX = 64
+N_CC = 8
