@@ -39,3 +39,26 @@ R2_CRC_LAST = 128
 #      N_RC (response end to next command) at least 8 clocks.
 N_CR_MAX = 64
 N_CC = 8
+
+# -- Data blocks on the 4-bit bus ------------------------------------------------------------
+# Ref: PLSS §4.3.4 (block write), §7.1.3.2/§4.9 (data packet format, wide bus): start bit 0
+#      on every line, 512 bytes as 1024 nibbles high nibble first, a CRC16 per line, end bit.
+BLOCK_BYTES = 512
+DATA_NIBBLES = 2 * BLOCK_BYTES
+#: N_WR: at least 2 clocks between the end of the response (or of busy) and a data block.
+N_WR = 2
+# Ref: PLSS §4.3.4, §7.3.2.5 (CRC status token on DAT0 after a written block: start 0, three
+#      status bits, end 1): 010 accepted, 101 CRC error, 110 write error.
+TOKEN_STATUS_BITS = 3
+TOKEN_ACCEPTED = 0b010
+TOKEN_CRC_ERROR = 0b101
+TOKEN_WRITE_ERROR = 0b110
+#: The token starts 2 clocks after the block's end bit (N_CRC); give a card some slack.
+TOKEN_TIMEOUT_CLOCKS = 16
+#: Busy (DAT0 low) may begin up to 2 clocks after the token's end bit.
+BUSY_START_CLOCKS = 2
+# Ref: PLSS §4.6.2 "Read, Write and Erase Timeout Conditions": SDHC write (busy) timeout
+#      250 ms, read access timeout 100 ms; in clocks at the 25 MHz default speed.
+DEFAULT_SPEED_HZ = 25_000_000
+BUSY_TIMEOUT_CLOCKS = DEFAULT_SPEED_HZ // 4
+READ_TIMEOUT_CLOCKS = DEFAULT_SPEED_HZ // 10
