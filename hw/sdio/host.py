@@ -1,0 +1,231 @@
+"""SD host: clock, CMD and DAT engines behind amaranth-soc registers."""
+
+from amaranth import *
+from amaranth.lib import enum, stream, wiring
+from amaranth.lib.wiring import In, Out
+
+from ..arch import sd as arch
+from ..soc import csr
+from .clock import SdClock
+from .cmd import CmdEngine, CmdStatus, ResponseKind
+from .dat import DatReader, DatWriter, ReadStatus, WriteStatus
+
+
+__all__ = ["DataPhase", "SdioHost"]
+
+#: Width of the clock divider: 400 kHz from up to 100 MHz needs a half period of 125 cycles.
+DIVISOR_BITS = 10
+
+
+class DataPhase(enum.Enum, shape=2):
+    """What the DAT lines do after a command."""
+    NONE  = 0
+    WRITE = 1    # after a good response, write `blocks` blocks from `i` (CMD24, CMD25)
+    READ  = 2    # read one block to `o` (CMD17); armed when the command starts
+
+
+class _Busy(enum.Enum, shape=2):
+    IDLE = 0
+    SKIP = 1
+    WAIT = 2
+
+
+class SdioHost(wiring.Component):
+    """4-bit SD host for the logger: the CPU sets up commands over CSR registers, block
+    data moves through streams (``i`` for writes, from the DMA; ``o`` for reads).
+
+    Writing ``command`` sends it with ``argument``; its ``data`` field chains a data phase
+    and ``r1b`` a wait for the end of busy on DAT0 (after CMD7, CMD12). ``status`` shows the
+    engines busy and every error bit of the last command and transfer; nothing is retried in
+    gateware, so the driver sees every failure.
+
+    Members
+    -------
+    bus : ``In(csr.Signature(...))``
+        Register access.
+    i : ``In(stream.Signature(8))``; o : ``Out(stream.Signature(8))``
+    sd_clk, sd_cmd_o, sd_cmd_oe : ``Out(1)``; sd_cmd_i : ``In(1)``
+    sd_dat_o : ``Out(4)``; sd_dat_oe : ``Out(1)``; sd_dat_i : ``In(4)``
+    """
+
+    class Clock(csr.Register, access="rw"):
+        """SD clock: f_sys / (2 * (divisor + 1)); `run` keeps it running while idle (the
+        74 clocks of power-up, and between commands)."""
+        divisor: csr.Field(csr.action.RW, DIVISOR_BITS)
+        run:     csr.Field(csr.action.RW, 1)
+
+    class Argument(csr.Register, access="rw"):
+        """Argument of the next command."""
+        value: csr.Field(csr.action.RW, arch.CMD_ARGUMENT_BITS)
+
+    class Command(csr.Register, access="w"):
+        """Writing sends a command: its index, the response expected, whether to wait for
+        busy after it (R1b), and the data phase that follows."""
+        index: csr.Field(csr.action.W, arch.CMD_INDEX_BITS)
+        kind:  csr.Field(csr.action.W, ResponseKind)
+        r1b:   csr.Field(csr.action.W, 1)
+        data:  csr.Field(csr.action.W, DataPhase)
+
+    class Blocks(csr.Register, access="rw"):
+        """Blocks to write in the next write data phase."""
+        count: csr.Field(csr.action.RW, 16, init=1)
+
+    class Timeouts(csr.Register, access="rw"):
+        """Response timeout, in SD clocks (N_CR)."""
+        response: csr.Field(csr.action.RW, 16, init=arch.N_CR_MAX)
+
+    class BusyTimeout(csr.Register, access="rw"):
+        """Busy timeout in SD clocks, after a block or an R1b (250 ms at 25 MHz)."""
+        clocks: csr.Field(csr.action.RW, 32, init=arch.BUSY_TIMEOUT_CLOCKS)
+
+    class ReadTimeout(csr.Register, access="rw"):
+        """Read access timeout in SD clocks (100 ms at 25 MHz)."""
+        clocks: csr.Field(csr.action.RW, 32, init=arch.READ_TIMEOUT_CLOCKS)
+
+    class Status(csr.Register, access="r"):
+        """Engines busy, and the errors of the last command, write and read."""
+        cmd_busy:     csr.Field(csr.action.R, 1)
+        dat_busy:     csr.Field(csr.action.R, 1)
+        cmd:          csr.Field(csr.action.R, CmdStatus)
+        write:        csr.Field(csr.action.R, WriteStatus)
+        read:         csr.Field(csr.action.R, ReadStatus)
+        busy_timeout: csr.Field(csr.action.R, 1)
+        dat_level:    csr.Field(csr.action.R, 4)
+
+    class Accepted(csr.Register, access="r"):
+        """Blocks the card accepted in the last write data phase."""
+        count: csr.Field(csr.action.R, 16)
+
+    class Response(csr.Register, access="r"):
+        """32 bits of the last response (word 0 holds bits 31..0)."""
+        value: csr.Field(csr.action.R, 32)
+
+    def __init__(self):
+        regs = csr.Builder(addr_width=4, data_width=32, granularity=8)
+        self._clock    = regs.add("clock", self.Clock())
+        self._argument = regs.add("argument", self.Argument())
+        self._command  = regs.add("command", self.Command())
+        self._blocks   = regs.add("blocks", self.Blocks())
+        self._timeouts = regs.add("timeouts", self.Timeouts())
+        self._busy_timeout = regs.add("busy_timeout", self.BusyTimeout())
+        self._read_timeout = regs.add("read_timeout", self.ReadTimeout())
+        self._status   = regs.add("status", self.Status())
+        self._accepted = regs.add("accepted", self.Accepted())
+        # (Named response0..3: the vendored Bridge cannot name registers under an Index.)
+        self._response = [regs.add(f"response{word}", self.Response())
+                          for word in range(arch.R2_CONTENT_BITS // 32)]
+        self._bridge = csr.Bridge(regs.as_memory_map())
+        super().__init__({
+            "bus":       In(csr.Signature(addr_width=regs.addr_width, data_width=regs.data_width)),
+            "i":         In(stream.Signature(8)),
+            "o":         Out(stream.Signature(8)),
+            "sd_clk":    Out(1),
+            "sd_cmd_o":  Out(1, init=1),
+            "sd_cmd_oe": Out(1),
+            "sd_cmd_i":  In(1, init=1),
+            "sd_dat_o":  Out(4, init=0xF),
+            "sd_dat_oe": Out(1),
+            "sd_dat_i":  In(4, init=0xF),
+        })
+        self.bus.memory_map = self._bridge.bus.memory_map
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.bridge = self._bridge
+        m.submodules.clock  = clock  = SdClock(divisor_bits=DIVISOR_BITS)
+        m.submodules.cmd    = cmd    = CmdEngine()
+        m.submodules.writer = writer = DatWriter()
+        m.submodules.reader = reader = DatReader()
+        wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
+
+        for engine in (cmd, writer, reader):
+            m.d.comb += [engine.rise.eq(clock.rise), engine.fall.eq(clock.fall)]
+
+        # Pins.
+        m.d.comb += [
+            self.sd_clk.eq(clock.clk),
+            self.sd_cmd_o.eq(cmd.cmd_o),
+            self.sd_cmd_oe.eq(cmd.cmd_oe),
+            cmd.cmd_i.eq(self.sd_cmd_i),
+            self.sd_dat_o.eq(writer.dat_o),
+            self.sd_dat_oe.eq(writer.dat_oe),
+            writer.dat_i.eq(self.sd_dat_i),
+            reader.dat_i.eq(self.sd_dat_i),
+        ]
+        wiring.connect(m, wiring.flipped(self.i), writer.i)
+        wiring.connect(m, reader.o, wiring.flipped(self.o))
+
+        # Settings.
+        m.d.comb += [
+            clock.divisor.eq(self._clock.f.divisor.data),
+            cmd.argument.eq(self._argument.f.value.data),
+            cmd.timeout.eq(self._timeouts.f.response.data),
+            writer.blocks.eq(self._blocks.f.count.data),
+            writer.busy_timeout.eq(self._busy_timeout.f.clocks.data),
+            reader.timeout.eq(self._read_timeout.f.clocks.data),
+        ]
+
+        # A command write starts the CMD engine (and arms a read at once: the card may start
+        # its block soon after the response); a write data phase waits for a good response.
+        phase   = Signal(DataPhase)
+        r1b     = Signal()
+        pending = Signal()           # a data phase or busy wait waits for the response
+        command = self._command.f
+        with m.If(command.index.w_stb & ~cmd.busy):
+            m.d.comb += [
+                cmd.start.eq(1),
+                cmd.index.eq(command.index.w_data),
+                cmd.kind.eq(command.kind.w_data),
+                reader.start.eq(command.data.w_data == DataPhase.READ),
+            ]
+            m.d.sync += [
+                phase.eq(command.data.w_data),
+                r1b.eq(command.r1b.w_data),
+                pending.eq(1),
+            ]
+
+        busy_state   = Signal(_Busy)
+        busy_waited  = Signal(32)
+        busy_timeout = Signal()
+        response_ok = ~cmd.status.as_value().any()
+        with m.If(pending & cmd.done):
+            m.d.sync += pending.eq(0)
+            with m.If(response_ok):
+                with m.If(phase == DataPhase.WRITE):
+                    m.d.comb += writer.start.eq(1)
+                with m.Elif(r1b):
+                    m.d.sync += [busy_state.eq(_Busy.SKIP), busy_waited.eq(0),
+                                 busy_timeout.eq(0)]
+
+        # R1b: wait for DAT0 to return high (after a clock or two for busy to begin).
+        with m.Switch(busy_state):
+            with m.Case(_Busy.SKIP, _Busy.WAIT):
+                with m.If(clock.rise):
+                    m.d.sync += busy_waited.eq(busy_waited + 1)
+                    with m.If(busy_waited < arch.BUSY_START_CLOCKS):
+                        pass
+                    with m.Elif(self.sd_dat_i[0] == 1):
+                        m.d.sync += busy_state.eq(_Busy.IDLE)
+                    with m.Elif(busy_waited >= self._busy_timeout.f.clocks.data):
+                        m.d.sync += [busy_state.eq(_Busy.IDLE), busy_timeout.eq(1)]
+
+        dat_busy = writer.busy | reader.busy | (busy_state != _Busy.IDLE)
+        m.d.comb += clock.run.eq((self._clock.f.run.data | cmd.busy | dat_busy | pending) &
+                                 writer.run & reader.run)
+
+        # Status and results.
+        status = self._status.f
+        m.d.comb += [
+            status.cmd_busy.r_data.eq(cmd.busy | pending),
+            status.dat_busy.r_data.eq(dat_busy),
+            status.cmd.r_data.eq(cmd.status),
+            status.write.r_data.eq(writer.status),
+            status.read.r_data.eq(reader.status),
+            status.busy_timeout.r_data.eq(busy_timeout),
+            status.dat_level.r_data.eq(self.sd_dat_i),
+            self._accepted.f.count.r_data.eq(writer.accepted),
+        ]
+        for word, reg in enumerate(self._response):
+            m.d.comb += reg.f.value.r_data.eq(cmd.response[32 * word:32 * (word + 1)])
+
+        return m
