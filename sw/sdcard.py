@@ -1,0 +1,309 @@
+"""SD card driver: identification, 4-bit mode, block reads and (multi-)block writes.
+
+Runs on any backend through :class:`~maglog.sw.bus.RegisterBus` and
+:class:`~maglog.sw.bus.BlockPort`; register addresses and fields come from the host's memory
+map (:class:`~maglog.sw.regmap.RegisterMap`). Every failure ends in an :class:`SdError`
+subclass that says what happened; a write is reported as done only when the card accepted
+every block, and the number of blocks accepted is always known.
+"""
+
+from dataclasses import dataclass
+
+from ..hw.arch import sd as arch
+from ..hw.sdio.cmd import ResponseKind
+from ..hw.sdio.host import DataPhase
+from .bus import BusTimeout
+
+
+__all__ = ["SdError", "SdTimeout", "SdCrcError", "SdCardError", "SdWriteError", "SdNoCard",
+           "SdCardDriver", "CardInfo"]
+
+
+class SdError(Exception):
+    """An SD card operation failed."""
+
+
+class SdNoCard(SdError):
+    """No card answers."""
+
+
+class SdTimeout(SdError):
+    """The card did not answer, send data, or leave busy in time."""
+
+
+class SdCrcError(SdError):
+    """A CRC did not match (response or read data) after every retry."""
+
+
+class SdCardError(SdError):
+    """The card reported an error in its status, or answered out of line."""
+
+
+class SdWriteError(SdError):
+    """A block write failed; ``accepted`` blocks were written before it."""
+    def __init__(self, message, accepted):
+        super().__init__(message)
+        self.accepted = accepted
+
+
+#: Response type of each command the driver sends, to the CMD engine's kind.
+_KIND = {
+    arch.Response.NONE: ResponseKind.NONE,
+    arch.Response.R1: ResponseKind.SHORT, arch.Response.R1B: ResponseKind.SHORT,
+    arch.Response.R6: ResponseKind.SHORT, arch.Response.R7: ResponseKind.SHORT,
+    arch.Response.R3: ResponseKind.OCR, arch.Response.R2: ResponseKind.LONG,
+}
+
+#: Identification clock (PLSS §4.2: at most 400 kHz) and data transfer clock (25 MHz).
+IDENT_CLOCK_HZ = 400_000
+INIT_CLOCKS = 74                    # PLSS §6.4.1: 74 clocks after power-up, CMD high
+ACMD41_LIMIT_S = 1.0                # PLSS §4.2.3: initialisation within 1 s
+IF_COND_PATTERN = 0xAA
+IF_COND_VOLTAGE = 0x1               # 2.7-3.6 V
+CMD_RETRIES = 3
+WRITE_RETRIES = 2
+#: Card status bits that mean this command (or its data) failed. COM_CRC_ERROR and
+#: ILLEGAL_COMMAND are about the previous command (PLSS §4.10.1, clear condition B): a
+#: command the card did not take got no response, which the driver has already seen.
+STATUS_ERRORS = (arch.CardStatus.OUT_OF_RANGE | arch.CardStatus.ADDRESS_ERROR
+                 | arch.CardStatus.BLOCK_LEN_ERROR | arch.CardStatus.WP_VIOLATION
+                 | arch.CardStatus.CARD_ECC_FAILED | arch.CardStatus.CC_ERROR
+                 | arch.CardStatus.ERROR)
+
+
+@dataclass
+class CardInfo:
+    """What identification found out."""
+    ocr: int
+    cid: int
+    rca: int
+    high_capacity: bool
+
+
+class SdCardDriver:
+    """Drives one card through an :class:`~maglog.hw.sdio.host.SdioHost`.
+
+    Parameters
+    ----------
+    bus : RegisterBus
+    regs : RegisterMap
+        The host's registers.
+    port : BlockPort
+        The host's data streams.
+    sys_clock_hz : float
+        The host's system clock, for the SD clock divisor.
+    """
+    def __init__(self, bus, regs, port, *, sys_clock_hz):
+        self.bus, self.regs, self.port = bus, regs, port
+        self.sys_clock_hz = sys_clock_hz
+        self.sd_clock_hz = None
+        self.info = None
+        self.retries = 0                    # how many retries were needed so far
+
+    # -- host primitives --------------------------------------------------------------------
+
+    async def set_clock(self, hz, *, run=False):
+        """Set the SD clock to at most ``hz``; returns the frequency set."""
+        divisor = max(0, -(-int(self.sys_clock_hz) // (2 * int(hz))) - 1)
+        limit = (1 << self.regs["clock"].field("divisor").width) - 1
+        if divisor > limit:
+            raise ValueError(f"{hz} Hz is below the slowest SD clock of this host "
+                             f"({self.sys_clock_hz / (2 * (limit + 1)):.0f} Hz)")
+        await self.bus.write(self.regs["clock"].address,
+                             self.regs["clock"].encode(divisor=divisor, run=int(run)))
+        self.sd_clock_hz = self.sys_clock_hz / (2 * (divisor + 1))
+        return self.sd_clock_hz
+
+    def _clocks_to_s(self, clocks):
+        return clocks / self.sd_clock_hz
+
+    async def _status(self):
+        return self.regs["status"].decode(await self.bus.read(self.regs["status"].address))
+
+    async def _wait_idle(self, field, timeout_s):
+        status = self.regs["status"]
+        try:
+            word = await self.bus.wait_event(status.address,
+                                             lambda w: not status.field(field).extract(w),
+                                             timeout=timeout_s, what=f"host {field} to clear")
+        except BusTimeout as error:
+            raise SdTimeout(f"the SD host stayed busy: {error}") from None
+        return status.decode(word)
+
+    async def command(self, index, argument, response, *, data=DataPhase.NONE):
+        """Send one command; returns the response bits (card status, OCR, CID ...).
+
+        Retries a command without a data phase on a response CRC error (a data command is
+        not sent twice: the card may already wait for data); raises :class:`SdTimeout` when nothing answers,
+        :class:`SdCrcError` when every try had a CRC error, :class:`SdCardError` on a
+        malformed response or error bits in an R1."""
+        regs = self.regs
+        tries = CMD_RETRIES if data == DataPhase.NONE else 1
+        for attempt in range(tries):
+            await self.bus.write(regs["argument"].address, argument)
+            await self.bus.write(regs["command"].address, regs["command"].encode(
+                index=index, kind=_KIND[response].value,
+                r1b=int(response == arch.Response.R1B), data=data.value))
+            status = await self._wait_idle("cmd_busy", self._clocks_to_s(4 * arch.N_CR_MAX
+                                                                           + 2 * arch.R2_BITS))
+            if response == arch.Response.NONE:
+                return None
+            if status["cmd.timeout"]:
+                raise SdTimeout(f"CMD{index} got no response")
+            if status["cmd.crc_error"]:
+                self.retries += 1
+                continue
+            if status["cmd.format_error"] or status["cmd.end_error"]:
+                raise SdCardError(f"CMD{index}: malformed response ({_flags(status, 'cmd.')})")
+            bits = 0
+            words = 4 if response == arch.Response.R2 else 2
+            for word in range(words):
+                value = await self.bus.read(regs[f"response{word}"].address)
+                bits |= value << (32 * word)
+            if response == arch.Response.R2:
+                return bits >> 1             # CID/CSD bits 127..1 (its CRC7 in bits 6..0)
+            payload = (bits >> 8) & 0xFFFFFFFF
+            if response in (arch.Response.R1, arch.Response.R1B):
+                errors = arch.CardStatus(payload) & STATUS_ERRORS
+                if errors:
+                    raise SdCardError(f"CMD{index}: card status reports {errors!r}")
+            if response == arch.Response.R1B:
+                await self._wait_dat(f"CMD{index} busy")
+            return payload
+        raise SdCrcError(f"CMD{index}: response CRC error on all {tries} tries")
+
+    async def _wait_dat(self, what):
+        timeout = self._clocks_to_s(arch.BUSY_TIMEOUT_CLOCKS) * 2
+        status = await self._wait_idle("dat_busy", timeout)
+        if status["busy_timeout"]:
+            raise SdTimeout(f"{what}: the card stayed busy past the busy timeout")
+        return status
+
+    async def _stop_quietly(self):
+        """CMD12, where the card's answer may carry the failure's own status bits."""
+        try:
+            await self.command(arch.Command.STOP_TRANSMISSION, 0, arch.Response.R1B)
+        except (SdCardError, SdTimeout):
+            pass                    # not in a data state any more: nothing to stop
+
+    async def app_command(self, index, argument, response):
+        rca = self.info.rca if self.info else 0
+        await self.command(arch.Command.APP_CMD, rca << 16, arch.Response.R1)
+        return await self.command(index, argument, response)
+
+    # -- identification ---------------------------------------------------------------------
+
+    async def initialise(self):
+        """Power-up clocks, CMD0, CMD8, ACMD41 (HCS) until ready, CMD2, CMD3, CMD7, ACMD6,
+        then the 25 MHz clock. Returns :class:`CardInfo`."""
+        await self.set_clock(IDENT_CLOCK_HZ, run=True)
+        await self.bus.wait(self._clocks_to_s(INIT_CLOCKS + 2))
+        await self.set_clock(IDENT_CLOCK_HZ, run=False)
+        await self.command(arch.Command.GO_IDLE_STATE, 0, arch.Response.NONE)
+        try:
+            echo = await self.command(arch.Command.SEND_IF_COND,
+                                      IF_COND_VOLTAGE << 8 | IF_COND_PATTERN, arch.Response.R7)
+        except SdTimeout:
+            raise SdNoCard("no card answers CMD8 (a version 1 card or no card)") from None
+        if echo & 0xFFF != IF_COND_VOLTAGE << 8 | IF_COND_PATTERN:
+            raise SdCardError(f"CMD8 echo {echo & 0xFFF:#05x} does not match")
+        start = self.bus.now()
+        while True:
+            ocr = await self.app_command(arch.AppCommand.SD_SEND_OP_COND,
+                                         arch.ACMD41_HCS | arch.OCR_VOLTAGE_WINDOW,
+                                         arch.Response.R3)
+            if ocr & arch.OCR_POWER_UP_DONE:
+                break
+            if self.bus.now() - start > ACMD41_LIMIT_S:
+                raise SdTimeout(f"the card did not finish power-up within {ACMD41_LIMIT_S} s")
+            await self.bus.wait(1e-3)
+        cid = await self.command(arch.Command.ALL_SEND_CID, 0, arch.Response.R2)
+        rca = (await self.command(arch.Command.SEND_RELATIVE_ADDR, 0, arch.Response.R6)) >> 16
+        self.info = CardInfo(ocr=ocr, cid=cid, rca=rca,
+                             high_capacity=bool(ocr & arch.OCR_CCS))
+        if not self.info.high_capacity:
+            raise SdCardError("standard-capacity (byte-addressed) cards are not supported")
+        await self.command(arch.Command.SELECT_CARD, rca << 16, arch.Response.R1B)
+        await self.app_command(arch.AppCommand.SET_BUS_WIDTH, 0b10, arch.Response.R1)
+        await self.set_clock(arch.DEFAULT_SPEED_HZ)
+        return self.info
+
+    async def card_status(self):
+        return await self.command(arch.Command.SEND_STATUS, self.info.rca << 16,
+                                  arch.Response.R1)
+
+    # -- data -------------------------------------------------------------------------------
+
+    async def read_block(self, lba):
+        """The 512 bytes of block ``lba`` (retried on a CRC error)."""
+        regs = self.regs
+        for attempt in range(CMD_RETRIES):
+            await self.command(arch.Command.READ_SINGLE_BLOCK, lba, arch.Response.R1,
+                               data=DataPhase.READ)
+            data = await self.port.receive(arch.BLOCK_BYTES)
+            status = await self._wait_idle("dat_busy", self._clocks_to_s(
+                arch.READ_TIMEOUT_CLOCKS) * 2)
+            if status["read.timeout"]:
+                raise SdTimeout(f"block {lba}: no data within the read timeout")
+            if status["read.crc_error"] or status["read.end_error"]:
+                self.retries += 1
+                continue
+            return data
+        raise SdCrcError(f"block {lba}: read data CRC error on all {CMD_RETRIES} tries")
+
+    async def write_blocks(self, lba, data, *, pre_erase=True):
+        """Write ``data`` (whole blocks) from block ``lba`` on: CMD24 for one block, else
+        ACMD23 (pre-erase count) and CMD25 ended by CMD12. A block the card rejects is sent
+        again (after CMD12 and a status check), up to a limit; raises
+        :class:`SdWriteError` with the count of blocks that are safely written."""
+        if len(data) % arch.BLOCK_BYTES or not data:
+            raise ValueError(f"Write data must be whole {arch.BLOCK_BYTES}-byte blocks, "
+                             f"not {len(data)} bytes")
+        done = 0
+        total = len(data) // arch.BLOCK_BYTES
+        failures = 0
+        while done < total:
+            accepted, error = await self._write_run(lba + done,
+                                                    data[done * arch.BLOCK_BYTES:], pre_erase)
+            done += accepted
+            if error is None:
+                continue
+            failures += 1
+            self.retries += 1
+            if failures > WRITE_RETRIES:
+                raise SdWriteError(f"writing block {lba + done} failed: {error}", done)
+        return done
+
+    async def _write_run(self, lba, data, pre_erase):
+        regs = self.regs
+        count = len(data) // arch.BLOCK_BYTES
+        multi = count > 1
+        if multi and pre_erase:
+            await self.app_command(arch.AppCommand.SET_WR_BLK_ERASE_COUNT, count,
+                                   arch.Response.R1)
+        await self.bus.write(regs["blocks"].address, count)
+        await self.port.send(data)
+        index = arch.Command.WRITE_MULTIPLE_BLOCK if multi else arch.Command.WRITE_BLOCK
+        try:
+            await self.command(index, lba, arch.Response.R1, data=DataPhase.WRITE)
+        except (SdCrcError, SdCardError) as error:
+            # The data phase may have started or not; stop it cleanly and try again.
+            await self._wait_dat(f"CMD{index}")
+            await self.port.discard()
+            await self._stop_quietly()
+            return 0, str(error)
+        status = await self._wait_dat(f"writing from block {lba}")
+        accepted = await self.bus.read(regs["accepted"].address)
+        failed = {k: v for k, v in status.items() if k.startswith("write.") and v}
+        if multi or failed:
+            # CMD12 ends a multi-block write, and any write that went wrong (the card may
+            # still be in rcv).
+            await self._stop_quietly()
+        if failed:
+            await self.port.discard()
+            return accepted, ", ".join(k[len("write."):] for k in failed)
+        return accepted, None
+
+
+def _flags(status, prefix):
+    return ", ".join(k[len(prefix):] for k, v in status.items() if k.startswith(prefix) and v)
