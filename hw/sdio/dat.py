@@ -107,8 +107,10 @@ class DatWriter(wiring.Component):
         m.d.sync += self.done.eq(0)
 
         def finish(**flags):
+            # A byte taken ahead for a block that will not be sent is dropped with the run:
+            # the next run starts from its own first byte.
             m.d.sync += [state.eq(_WState.IDLE), self.done.eq(1), self.dat_oe.eq(0),
-                         self.dat_o.eq(ALL_LINES)]
+                         self.dat_o.eq(ALL_LINES), loaded.eq(0)]
             for name, value in flags.items():
                 m.d.sync += getattr(self.status, name).eq(value)
 

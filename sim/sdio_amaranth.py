@@ -1,0 +1,118 @@
+"""Amaranth-simulator backends for the SD path: the firmware's register bus and block port
+on an :class:`~maglog.hw.sdio.host.SdioHost`, and the SD card model on its pins."""
+
+from ..sw.bus import BlockPort, RegisterBus
+from .amaranth_tb import CLOCK_PERIOD, collect_payloads
+
+
+__all__ = ["CsrBus", "StreamBlockPort", "run_card"]
+
+
+class CsrBus(RegisterBus):
+    """Register access through a CSR bus (one 32-bit word per address)."""
+    def __init__(self, ctx, bus, *, clock_period=CLOCK_PERIOD):
+        self._ctx, self._bus, self._period = ctx, bus, clock_period
+        self._cycles = 0
+
+    async def read(self, address):
+        ctx, bus = self._ctx, self._bus
+        ctx.set(bus.addr, address)
+        ctx.set(bus.r_stb, 1)
+        await ctx.tick()
+        ctx.set(bus.r_stb, 0)
+        self._cycles += 1
+        # The data is valid right after the edge on which r_stb was high.
+        return ctx.get(bus.r_data)
+
+    async def write(self, address, value):
+        ctx, bus = self._ctx, self._bus
+        ctx.set(bus.addr, address)
+        ctx.set(bus.w_data, value)
+        ctx.set(bus.w_stb, 1)
+        await ctx.tick()
+        ctx.set(bus.w_stb, 0)
+        # A field takes the value one cycle after the strobe: wait for it, so that what the
+        # firmware does next (read a status, say) sees the write's effect.
+        await ctx.tick()
+        self._cycles += 2
+
+    async def wait(self, seconds):
+        cycles = max(1, round(seconds / self._period))
+        await self._ctx.tick().repeat(cycles)
+        self._cycles += cycles
+
+    def now(self):
+        return self._cycles * self._period
+
+
+class StreamBlockPort(BlockPort):
+    """The host's byte streams, fed and drained by background testbenches (:meth:`source`,
+    :meth:`sink`); the firmware queues and takes bytes (:meth:`attach` its context first)."""
+
+    #: Cycles between looks at an empty outgoing queue.
+    IDLE_POLL = 32
+
+    def __init__(self, host):
+        self._host = host
+        self._outgoing = bytearray()
+        self._incoming = bytearray()
+        self._ctx = None
+
+    def attach(self, ctx):
+        self._ctx = ctx
+
+    async def source(self, ctx):
+        stream = self._host.i
+        while True:
+            if not self._outgoing:
+                ctx.set(stream.valid, 0)
+                # (a plain delay, not tick().repeat(): an async generator still running when
+                # the simulation ends is reported as an unraisable exception)
+                await ctx.delay(self.IDLE_POLL * CLOCK_PERIOD)
+                await ctx.tick()
+                continue
+            ctx.set(stream.payload, self._outgoing[0])
+            ctx.set(stream.valid, 1)
+            _, _, ready = await ctx.tick().sample(stream.ready)
+            if ready and self._outgoing:
+                del self._outgoing[0]
+
+    async def sink(self, ctx):
+        await collect_payloads(ctx, self._host.o, self._incoming)
+
+    async def send(self, data):
+        self._outgoing += data
+
+    async def discard(self):
+        self._outgoing.clear()
+
+    async def receive(self, count):
+        while len(self._incoming) < count:
+            await self._ctx.tick()
+        data = bytes(self._incoming[:count])
+        del self._incoming[:count]
+        return data
+
+
+async def run_card(ctx, host, card):
+    """Run an :class:`~maglog.sim.models.sdcard.SdCard` on the host's pins: at each rising
+    edge of ``sd_clk`` the card sees the bus levels (host drive, card drive or pull-up) and
+    sets what it drives until the next edge. Both sides driving a line is reported to the
+    card model as a protocol error."""
+    card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
+    while True:
+        await ctx.posedge(host.sd_clk)
+        host_cmd_oe = ctx.get(host.sd_cmd_oe)
+        host_dat_oe = ctx.get(host.sd_dat_oe)
+        if host_cmd_oe and card_cmd_oe:
+            card.report("bus contention on CMD")
+        if host_dat_oe and card_dat_oe:
+            card.report("bus contention on DAT")
+        cmd = ctx.get(host.sd_cmd_o) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
+        if host_dat_oe:
+            dat = ctx.get(host.sd_dat_o)
+        else:
+            dat = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
+        card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
+        ctx.set(host.sd_cmd_i, card_cmd if card_cmd_oe else 1)
+        ctx.set(host.sd_dat_i, (card_dat & card_dat_oe) | (0xF & ~card_dat_oe))
