@@ -1,0 +1,205 @@
+"""cocotb backends for the SD path, and a bench that runs the firmware's SD driver on the
+SD host's generated Verilog against the card model.
+
+Backends: :class:`CsrBus` (the firmware's register bus on the CSR port), :class:`BlockPort`
+(the host's byte streams), :func:`run_card` (the card model on the pins: it samples at each
+rising edge of ``sd_clk`` and drives after the falling edge, as a default-speed card).
+Python runs per register access, per byte and per SD clock edge, never per system clock.
+"""
+
+import json
+import logging
+import os
+import random
+
+import cocotb
+from cocotb.clock import Clock
+from cocotb.simtime import get_sim_time
+from cocotb.triggers import FallingEdge, ReadOnly, RisingEdge, Timer
+
+from ..sw.bus import BlockPort as _BlockPort
+from ..sw.bus import RegisterBus
+
+
+__all__ = ["CsrBus", "BlockPort", "run_card"]
+
+CLOCK_NS = 20
+
+
+class CsrBus(RegisterBus):
+    """The firmware's register bus on the Verilog's ``bus__*`` CSR port."""
+    def __init__(self, dut, *, clock_period_s):
+        self._dut = dut
+        self._period = clock_period_s
+        self._cycles = 0
+
+    async def read(self, address):
+        dut = self._dut
+        dut.bus__addr.value = address
+        dut.bus__r_stb.value = 1
+        await RisingEdge(dut.clk)
+        await ReadOnly()
+        await FallingEdge(dut.clk)
+        # Valid right after the edge that saw r_stb, and still there half a cycle later.
+        value = int(dut.bus__r_data.value)
+        dut.bus__r_stb.value = 0
+        self._cycles += 1
+        return value
+
+    async def write(self, address, value):
+        dut = self._dut
+        dut.bus__addr.value = address
+        dut.bus__w_data.value = value
+        dut.bus__w_stb.value = 1
+        await RisingEdge(dut.clk)
+        await FallingEdge(dut.clk)
+        dut.bus__w_stb.value = 0
+        await RisingEdge(dut.clk)          # the field takes the value a cycle later
+        await FallingEdge(dut.clk)
+        self._cycles += 2
+
+    async def wait(self, seconds):
+        cycles = max(1, round(seconds / self._period))
+        await Timer(cycles * CLOCK_NS, unit="ns")
+        await FallingEdge(self._dut.clk)
+        self._cycles += cycles
+
+    def now(self):
+        return self._cycles * self._period
+
+
+class BlockPort(_BlockPort):
+    """The host's ``i``/``o`` byte streams, from and to Python queues."""
+    def __init__(self, dut):
+        self._dut = dut
+        self._outgoing = bytearray()
+        self._incoming = bytearray()
+        self._wake = cocotb.triggers.Event()
+
+    async def source(self):
+        dut = self._dut
+        dut.i__valid.value = 0
+        while True:
+            if not self._outgoing:
+                dut.i__valid.value = 0
+                self._wake.clear()
+                await self._wake.wait()
+                await FallingEdge(dut.clk)
+                continue
+            dut.i__payload.value = self._outgoing[0]
+            dut.i__valid.value = 1
+            # `ready` as the coming edge will see it (settled, this cycle).
+            await ReadOnly()
+            taken = str(dut.i__ready.value) == "1"
+            await RisingEdge(dut.clk)
+            if taken:
+                del self._outgoing[0]
+            await FallingEdge(dut.clk)
+
+    async def sink(self):
+        dut = self._dut
+        dut.o__ready.value = 1
+        while True:
+            # What is offered until the next edge, which takes it (ready is always high).
+            await ReadOnly()
+            if str(dut.o__valid.value) == "1":
+                self._incoming.append(int(dut.o__payload.value))
+                await RisingEdge(dut.clk)
+            else:
+                await RisingEdge(dut.o__valid)
+
+    async def send(self, data):
+        self._outgoing += data
+        self._wake.set()
+
+    async def discard(self):
+        self._outgoing.clear()
+
+    async def receive(self, count):
+        while len(self._incoming) < count:
+            await RisingEdge(self._dut.clk)
+        data = bytes(self._incoming[:count])
+        del self._incoming[:count]
+        await FallingEdge(self._dut.clk)
+        return data
+
+
+async def run_card(dut, card):
+    """The card model on the pins (see the module documentation)."""
+    card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
+    while True:
+        await RisingEdge(dut.sd_clk)
+        await ReadOnly()
+        host_cmd_oe = int(dut.sd_cmd_oe.value)
+        host_dat_oe = int(dut.sd_dat_oe.value)
+        if host_cmd_oe and card_cmd_oe:
+            card.report("bus contention on CMD")
+        if host_dat_oe and card_dat_oe:
+            card.report("bus contention on DAT")
+        cmd = int(dut.sd_cmd_o.value) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
+        if host_dat_oe:
+            dat = int(dut.sd_dat_o.value)
+        else:
+            dat = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
+        card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
+        await FallingEdge(dut.sd_clk)
+        dut.sd_cmd_i.value = card_cmd if card_cmd_oe else 1
+        dut.sd_dat_i.value = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
+
+
+@cocotb.test()
+async def write_read_back(dut):
+    """Identify the card, write the stimulus's block runs, read them back."""
+    from ..hw.sdio.host import SdioHost
+    from ..sw.regmap import RegisterMap
+    from ..sw.sdcard import SdCardDriver
+    from .models.card_image import CardImage
+    from .models.sdcard import Faults, SdCard
+
+    logging.getLogger("cocotb").setLevel(logging.WARNING)
+    with open(os.environ["MAGLOG_STIMULUS"]) as f:
+        stimulus = json.load(f)
+    Clock(dut.clk, CLOCK_NS, unit="ns", impl="gpi").start()
+    dut.sd_cmd_i.value = 1
+    dut.sd_dat_i.value = 0xF
+    dut.bus__r_stb.value = 0
+    dut.bus__w_stb.value = 0
+    dut.rst.value = 1
+    for _ in range(4):
+        await RisingEdge(dut.clk)
+    dut.rst.value = 0
+    await FallingEdge(dut.clk)
+
+    image = CardImage(stimulus["capacity"])
+    card = SdCard(image, seed=stimulus["seed"], faults=Faults(**stimulus.get("faults", {})))
+    port = BlockPort(dut)
+    cocotb.start_soon(run_card(dut, card))
+    cocotb.start_soon(port.source())
+    cocotb.start_soon(port.sink())
+    sys_clock_hz = stimulus["sys_clock_hz"]
+    bus = CsrBus(dut, clock_period_s=1 / sys_clock_hz)
+    driver = SdCardDriver(bus, RegisterMap(SdioHost().bus.memory_map), port,
+                          sys_clock_hz=sys_clock_hz)
+
+    result = {"mismatches": []}
+    try:
+        await driver.initialise()
+        rng = random.Random(stimulus["seed"])
+        for lba, count in stimulus["runs"]:
+            data = rng.randbytes(512 * count)
+            await driver.write_blocks(lba, data)
+            for k in range(count):
+                back = await driver.read_block(lba + k)
+                if back != data[512 * k:512 * (k + 1)]:
+                    result["mismatches"].append(f"block {lba + k} read back differs")
+                if image.read_block(lba + k) != data[512 * k:512 * (k + 1)]:
+                    result["mismatches"].append(f"block {lba + k} in the image differs")
+    except Exception as error:
+        result["mismatches"].append(f"{type(error).__name__}: {error}")
+    result.update(card_errors=card.errors, retries=driver.retries,
+                  blocks_stored=card.blocks_stored,
+                  cycles=int(get_sim_time(unit="ns")) // CLOCK_NS)
+    image.save(os.path.join(os.path.dirname(os.environ["MAGLOG_RESULT"]), "card.img"))
+    with open(os.environ["MAGLOG_RESULT"], "w") as f:
+        json.dump(result, f)
+    assert not result["mismatches"] and not card.errors, result

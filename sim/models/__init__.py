@@ -1,0 +1,7 @@
+"""Device models in plain Python (SD card, ...), with thin adapters elsewhere for the
+Amaranth simulator and for cocotb."""
+
+from .card_image import CardImage
+from .sdcard import BlockEvent, CardState, Faults, SdCard, Transaction
+
+__all__ = ["CardImage", "SdCard", "Faults", "CardState", "Transaction", "BlockEvent"]
