@@ -31,6 +31,9 @@ from maglog.hw.arbiter import FrameArbiter
 from maglog.hw.frame_fifo import FrameFifo
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import DEFAULT_CHANNELS, TOPLEVEL_NAME, Channel, FrontEnd
+from maglog.hw.sdio.cmd import CmdEngine
+from maglog.hw.sdio.dat import DatReader, DatWriter
+from maglog.hw.sdio.host import SdioHost
 from maglog.hw.uart import UartRx
 
 # The helper beside this script: no __pycache__ in the tree for it.
@@ -75,6 +78,8 @@ def designs(include_parts):
     found.append(Design(TOPLEVEL_NAME,
                         "FrontEnd()  # " + ", ".join(c.kind.name for c in DEFAULT_CHANNELS),
                         FrontEnd))
+    found.append(Design("sdio_host", "SdioHost()  # clock, CMD, DAT writer and reader, CSR",
+                        SdioHost))
     if include_parts:
         found += [
             Design("frame_fifo", "FrameFifo(depth=1024)", lambda: FrameFifo(depth=1024),
@@ -83,6 +88,9 @@ def designs(include_parts):
                    lambda: FrameArbiter(len(DEFAULT_CHANNELS)), part=True),
             Design("channel_pmag_w1", "Channel(ChannelKind.PMAG, counter_width=1)",
                    lambda: Channel(ChannelKind.PMAG, counter_width=1), part=True),
+            Design("sd_cmd", "CmdEngine()", CmdEngine, part=True),
+            Design("sd_dat_writer", "DatWriter()", DatWriter, part=True),
+            Design("sd_dat_reader", "DatReader()", DatReader, part=True),
         ]
     return found
 

@@ -1,0 +1,126 @@
+"""Multi-block write throughput of the SD host against the 4-bit bus limit.
+
+The firmware's driver writes N blocks with one CMD25 through the SdioHost (Amaranth
+simulator) to the card model. Every SD clock edge is recorded: the data phase runs from the
+first block's start bit to the end of the last block's busy; the card's busy clocks are
+excluded. The 4-bit bus limit is 1024 clocks per 512-byte block, so
+
+    efficiency = 1024 * N / (data-phase clocks - busy clocks)
+
+Run from the repository root: ``.venv/bin/python bench/sdio_throughput.py``.
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import command_line, load, machine, now, packages, work_tree
+
+from maglog.hw.arch import sd as arch
+from maglog.hw.sdio.host import SdioHost
+from maglog.sim.amaranth_tb import run_simulation
+from maglog.sim.models.card_image import CardImage
+from maglog.sim.models.sdcard import SdCard
+from maglog.sim.sdio_amaranth import CsrBus, StreamBlockPort, run_card
+from maglog.sw.regmap import RegisterMap
+from maglog.sw.sdcard import SdCardDriver
+
+BENCH_DIR = Path(__file__).resolve().parent
+DEFAULT_OUTPUT = BENCH_DIR / "results" / "sdio_throughput.json"
+
+
+class RecordingCard:
+    """The card model, with a record of (host drives DAT, card busy) at every edge."""
+    def __init__(self, card):
+        self._card = card
+        self.edges = []
+        self.host_dat_oe = 0
+
+    def edge(self, cmd, dat):
+        result = self._card.edge(cmd, dat)
+        self.edges.append((self.host_dat_oe, self._card.busy))
+        return result
+
+    def report(self, message):
+        self._card.report(message)
+
+
+def measure(blocks, *, sys_clock_hz, busy_clocks, seed):
+    host = SdioHost()
+    regs = RegisterMap(host.bus.memory_map)
+    port = StreamBlockPort(host)
+    card = SdCard(CardImage(1 << 16), seed=seed, busy_clocks=busy_clocks)
+    recorder = RecordingCard(card)
+    data = bytes((k * 7) & 0xFF for k in range(blocks * arch.BLOCK_BYTES))
+    marks = {}
+
+    async def firmware(ctx):
+        bus = CsrBus(ctx, host.bus, clock_period=1 / sys_clock_hz)
+        port.attach(ctx)
+        driver = SdCardDriver(bus, regs, port, sys_clock_hz=sys_clock_hz)
+        await driver.initialise()
+        marks["start"] = len(recorder.edges)
+        await driver.write_blocks(1000, data, pre_erase=False)
+        marks["end"] = len(recorder.edges)
+
+    async def card_side(ctx):
+        await run_card(ctx, host, recorder)
+
+    async def dat_watch(ctx):
+        while True:
+            await ctx.changed(host.sd_dat_oe)
+            recorder.host_dat_oe = ctx.get(host.sd_dat_oe)
+
+    start = time.perf_counter()
+    run_simulation(host, [firmware], background=[card_side, dat_watch, port.source, port.sink],
+                   name="sdio_throughput")
+    wall = time.perf_counter() - start
+    if card.errors:
+        raise RuntimeError(f"the card model reported: {card.errors[:3]}")
+    edges = recorder.edges[marks["start"]:marks["end"]]
+    first = next(i for i, (oe, _) in enumerate(edges) if oe)
+    last_busy = max(i for i, (_, busy) in enumerate(edges) if busy)
+    phase = edges[first:last_busy + 1]
+    busy = sum(1 for _, b in phase if b)
+    clocks = len(phase) - busy
+    return {
+        "blocks": blocks,
+        "data_phase_clocks": len(phase),
+        "busy_clocks": busy,
+        "clocks_excluding_busy": clocks,
+        "bus_limit_clocks": blocks * arch.DATA_NIBBLES,
+        "efficiency": blocks * arch.DATA_NIBBLES / clocks,
+        "clocks_per_block": clocks / blocks,
+        "wall_seconds": wall,
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--blocks", type=int, default=16, help="blocks in the CMD25 (16)")
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    args = parser.parse_args(argv)
+    load_start = load()
+    result = measure(args.blocks, sys_clock_hz=4e6, busy_clocks=(8, 64), seed=1)
+    print(f"{result['blocks']} blocks: {result['clocks_excluding_busy']} SD clocks outside busy "
+          f"for {result['bus_limit_clocks']} data clocks: efficiency "
+          f"{100 * result['efficiency']:.2f} % ({result['clocks_per_block']:.1f} clocks a "
+          f"block; busy {result['busy_clocks']} clocks excluded)")
+    report = {
+        "benchmark": "sdio_throughput", "date": now(),
+        "command": command_line(sys.argv[1:] if argv is None else argv),
+        "machine": machine(), "load_average": {"start": load_start, "end": load()},
+        "tools": packages("amaranth"), "work_tree": work_tree(), "result": result,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"written {args.output}")
+    return 0 if result["efficiency"] >= 0.95 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
