@@ -38,7 +38,9 @@ class CsrBus(RegisterBus):
 
     async def wait(self, seconds):
         cycles = max(1, round(seconds / self._period))
-        await self._ctx.tick().repeat(cycles)
+        # One delay instead of a tick per cycle, then back onto a clock edge.
+        await self._ctx.delay((cycles - 1) * CLOCK_PERIOD)
+        await self._ctx.tick()
         self._cycles += cycles
 
     def now(self):

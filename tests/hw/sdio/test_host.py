@@ -134,6 +134,19 @@ def test_busy_past_the_timeout_is_reported_with_the_blocks_written():
             assert card.image.read_block(700 + k) == data[k * 512:(k + 1) * 512]
 
 
+def test_card_that_never_finishes_power_up(monkeypatch):
+    import maglog.sw.sdcard as sdcard
+    monkeypatch.setattr(sdcard, "ACMD41_LIMIT_S", 0.01)
+    card = new_card(acmd41_busy=(10_000, 10_000))
+
+    async def firmware(driver):
+        return await driver.initialise()
+
+    out = run(firmware, card)
+    assert isinstance(out.get("error"), SdTimeout)
+    assert "power-up" in str(out["error"])
+
+
 def test_no_card():
     card = new_card(faults=Faults(no_card=True))
 
