@@ -77,6 +77,23 @@ def _cmd_hdl_verilog(args):
               file=sys.stderr)
 
 
+def _cmd_hdl_regmap(args):
+    from ..hw.sdio.host import SdioHost
+    from ..sw.regmap import RegisterMap, to_c_header, to_markdown
+    regs = RegisterMap(SdioHost().bus.memory_map)
+    if args.format == "markdown":
+        text = to_markdown(regs, title="SD host registers")
+    else:
+        text = to_c_header(regs, prefix="sdio")
+    if args.output == "-":
+        sys.stdout.write(text)
+    else:
+        path = Path(args.output)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+        print(f"wrote {path}", file=sys.stderr)
+
+
 def _table(header, rows):
     widths = [max(len(str(x)) for x in column) for column in zip(header, *rows)]
     line = lambda cells: "  ".join(str(c).rjust(w) if i else str(c).ljust(w)
@@ -169,6 +186,14 @@ def _parser():
                          help="frame FIFO bytes per channel, a power of two "
                               "(default: %(default)s)")
     verilog.set_defaults(func=_cmd_hdl_verilog)
+
+    regmap = hdl_commands.add_parser(
+        "regmap", help="write the register map (from the memory map) as Markdown or a C header")
+    regmap.add_argument("--format", choices=("markdown", "c"), default="markdown",
+                        help="output format (default: %(default)s)")
+    regmap.add_argument("-o", "--output", default="-",
+                        help="output file (default: standard output)")
+    regmap.set_defaults(func=_cmd_hdl_regmap)
 
     demo = commands.add_parser(
         "demo", help="push the built-in demo flight's serial streams through the front end")

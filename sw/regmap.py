@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from amaranth.hdl import Shape
 
 
-__all__ = ["Field", "Register", "RegisterMap"]
+__all__ = ["Field", "Register", "RegisterMap", "to_markdown", "to_c_header"]
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,8 @@ class Register:
     name: str
     address: int
     fields: dict
+    access: str = ""
+    doc: str = ""
 
     def field(self, name):
         try:
@@ -99,7 +101,9 @@ class RegisterMap:
                 shape = data_member.shape
                 fields.update(_layout_fields(".".join(path), shape, offset))
                 offset += Shape.cast(shape).width
-            self._registers[name] = Register(name, base + info.start, fields)
+            doc = " ".join((type(info.resource).__doc__ or "").split())
+            access = info.resource.element.access.value
+            self._registers[name] = Register(name, base + info.start, fields, access, doc)
 
     def __getitem__(self, name):
         try:
@@ -110,3 +114,37 @@ class RegisterMap:
 
     def __iter__(self):
         return iter(self._registers.values())
+
+
+def to_markdown(regmap, *, title):
+    """The register map as a Markdown page: a table of registers, then their fields."""
+    lines = [f"# {title}", "", "Generated from the gateware's memory map by "
+             "`maglog hdl regmap`; word addresses, 32-bit registers.", "",
+             "| address | register | access | description |", "|---:|---|---|---|"]
+    for reg in regmap:
+        lines.append(f"| {reg.address:#04x} | `{reg.name}` | {reg.access} | {reg.doc} |")
+    for reg in regmap:
+        lines += ["", f"## `{reg.name}` ({reg.address:#04x})", "",
+                  "| bits | field |", "|---|---|"]
+        for field in reg.fields.values():
+            top = field.offset + field.width - 1
+            bits = f"{field.offset}" if field.width == 1 else f"{top}:{field.offset}"
+            lines.append(f"| {bits} | `{field.name}` |")
+    return "\n".join(lines) + "\n"
+
+
+def to_c_header(regmap, *, prefix):
+    """The register map as a C header: word addresses, field shifts and masks."""
+    guard = f"{prefix.upper()}_REGS_H"
+    lines = [f"/* Generated from the gateware's memory map by `maglog hdl regmap`. */",
+             f"#ifndef {guard}", f"#define {guard}", ""]
+    for reg in regmap:
+        name = f"{prefix}_{reg.name}".upper()
+        lines.append(f"#define {name}_ADDR {reg.address:#x}u")
+        for field in reg.fields.values():
+            fname = f"{name}_{field.name.replace('.', '_')}".upper()
+            lines.append(f"#define {fname}_SHIFT {field.offset}u")
+            lines.append(f"#define {fname}_MASK {field.mask:#x}u")
+        lines.append("")
+    lines.append(f"#endif /* {guard} */")
+    return "\n".join(lines) + "\n"

@@ -47,3 +47,20 @@ def test_errors_name_what_exists(regs):
         regs["command"].field("speed")
     with pytest.raises(ValueError, match="Field index is 6 bits wide; 64 does not fit"):
         regs["command"].encode(index=64)
+
+
+def test_committed_register_page_is_current():
+    from pathlib import Path
+    from maglog.sw.regmap import to_markdown
+    page = Path(__file__).resolve().parents[2] / "docs" / "registers.md"
+    expected = to_markdown(RegisterMap(SdioHost().bus.memory_map), title="SD host registers")
+    assert page.read_text() == expected, "run `maglog hdl regmap -o docs/registers.md`"
+
+
+def test_c_header_defines_every_field(regs):
+    from maglog.sw.regmap import to_c_header
+    header = to_c_header(regs, prefix="sdio")
+    for reg in regs:
+        assert f"#define SDIO_{reg.name.upper()}_ADDR {reg.address:#x}u" in header
+        for field in reg.fields.values():
+            assert f"SDIO_{reg.name}_{field.name.replace('.', '_')}_MASK".upper() in header
