@@ -64,17 +64,25 @@ def _front_end_from(args):
         raise CliError(str(error)) from None
 
 
+def _write_output(output, text, what):
+    """Write ``text`` to the file ``output`` (``-``: standard output)."""
+    if output == "-":
+        sys.stdout.write(text)
+        return
+    path = Path(output)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    except OSError as error:
+        raise CliError(f"cannot write {path}: {error.strerror}") from None
+    print(f"wrote {path} ({what})", file=sys.stderr)
+
+
 def _cmd_hdl_verilog(args):
     from ..hw.frontend import generate_verilog
     text = generate_verilog(_front_end_from(args))
-    if args.output == "-":
-        sys.stdout.write(text)
-    else:
-        path = Path(args.output)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text)
-        print(f"wrote {path} ({len(text.splitlines())} lines, top module maglog_frontend)",
-              file=sys.stderr)
+    _write_output(args.output, text,
+                  f"{len(text.splitlines())} lines, top module maglog_frontend")
 
 
 def _cmd_hdl_regmap(args):
@@ -85,13 +93,7 @@ def _cmd_hdl_regmap(args):
         text = to_markdown(regs, title="SD host registers")
     else:
         text = to_c_header(regs, prefix="sdio")
-    if args.output == "-":
-        sys.stdout.write(text)
-    else:
-        path = Path(args.output)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text)
-        print(f"wrote {path}", file=sys.stderr)
+    _write_output(args.output, text, f"{len(list(regs))} registers")
 
 
 def _table(header, rows):

