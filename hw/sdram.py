@@ -1,0 +1,273 @@
+"""SDR SDRAM controller: initialisation, auto refresh, open-row page accesses."""
+
+from amaranth import *
+from amaranth.lib import data, enum, stream, wiring
+from amaranth.lib.wiring import In, Out
+from amaranth.utils import ceil_log2
+
+from .arch import sdram as arch
+
+
+__all__ = ["SdramController", "sdram_pins_signature", "request_layout"]
+
+
+def request_layout(geometry):
+    """A word access: read or write one word at a word address (bank, row, column)."""
+    return data.StructLayout({
+        "write": 1,
+        "addr":  geometry.word_address_bits,
+        "data":  geometry.data_width,
+        "mask":  geometry.data_width // 8,     # bytes to write (1 = write that byte)
+    })
+
+
+def sdram_pins_signature(geometry):
+    """The chip's pins, as DESIGN.md names them (``sdram_*`` at the top level)."""
+    return wiring.Signature({
+        "a":     Out(geometry.address_bits),
+        "ba":    Out(geometry.bank_bits),
+        "cs_n":  Out(1, init=1),
+        "ras_n": Out(1, init=1),
+        "cas_n": Out(1, init=1),
+        "we_n":  Out(1, init=1),
+        "cke":   Out(1),
+        "dqm":   Out(geometry.data_width // 8, init=-1),
+        "dq_o":  Out(geometry.data_width),
+        "dq_oe": Out(1),
+        "dq_i":  In(geometry.data_width),
+    })
+
+
+class _State(enum.Enum, shape=4):
+    POWER_UP   = 0
+    INIT_PRE   = 1
+    INIT_REF   = 2
+    INIT_MODE  = 3
+    IDLE       = 4
+    REFRESH    = 5
+    PRECHARGE  = 6
+    ACTIVATE   = 7
+    WAIT       = 8
+
+
+class SdramController(wiring.Component):
+    """An SDR SDRAM controller for one chip.
+
+    Word requests come in on ``i`` (read or write, with a byte mask for writes); read data
+    leaves on ``o`` in request order, a fixed number of cycles later, with no backpressure
+    (a requester asks only for what it has room for). Rows stay open per bank (page
+    accesses): requests to an open row go out one a clock, so sequential traffic runs at up
+    to one word per clock; another row in the bank costs a precharge and an activate. Auto
+    refresh keeps its interval: when due, the controller finishes the current access,
+    precharges all banks and refreshes. Every wait is counted in clocks from the chip's
+    timing at ``clk_freq``; the burst length is 1 and the CAS latency 2 or 3.
+
+    Address: ``addr`` = {row, bank, column} (column lowest), so a sequential stream walks a
+    row of one bank, then the same row of the next bank.
+
+    Members
+    -------
+    i : ``In(stream.Signature(request_layout(geometry)))``
+    o : ``Out(stream.Signature(data_width))`` (no backpressure: ``ready`` is ignored)
+    pins : ``Out(sdram_pins_signature(geometry))``
+    ready : ``Out(1)``
+        Initialisation is done.
+    refreshes : ``Out(32)``
+        Auto refreshes issued (for tests and status).
+    """
+    def __init__(self, chip, *, clk_freq, cas_latency=2):
+        if not isinstance(chip, arch.Chip):
+            raise TypeError(f"Chip must be an arch.sdram.Chip, not {chip!r}")
+        if cas_latency not in (2, 3):
+            raise ValueError(f"CAS latency must be 2 or 3, not {cas_latency!r}")
+        if not clk_freq > 0:
+            raise ValueError(f"Clock frequency must be positive, not {clk_freq!r}")
+        self.chip = chip
+        self.clk_freq = clk_freq
+        self.cas_latency = cas_latency
+        g = chip.geometry
+        super().__init__({
+            "i":         In(stream.Signature(request_layout(g))),
+            "o":         Out(stream.Signature(g.data_width)),
+            "pins":      Out(sdram_pins_signature(g)),
+            "ready":     Out(1),
+            "refreshes": Out(32),
+        })
+
+    def elaborate(self, platform):
+        m = Module()
+        chip, g, t = self.chip, self.chip.geometry, self.chip.timing
+        clocks = lambda ns: t.clocks(ns, self.clk_freq)
+        t_rcd, t_rp, t_ras, t_rc = clocks(t.t_rcd), clocks(t.t_rp), clocks(t.t_ras), clocks(t.t_rc)
+        t_rfc, t_wr, t_mrd = clocks(t.t_rfc), clocks(t.t_wr), t.t_mrd_clocks
+        power_up = clocks(t.power_up_us * 1e3)
+        interval = chip.refresh_interval_clocks(self.clk_freq)
+        # Refresh a little early: the request in progress and the precharge come first.
+        refresh_every = interval - (t_rp + t_rc + t_wr + 8)
+        if refresh_every <= 0:
+            raise ValueError(f"A {self.clk_freq} Hz clock is too slow to refresh "
+                             f"{chip.name} in time")
+
+        pins = self.pins
+        cmd = Signal(3, init=arch.Command.NOP)
+        m.d.comb += [pins.ras_n.eq(cmd[2]), pins.cas_n.eq(cmd[1]), pins.we_n.eq(cmd[0])]
+        next_cmd = Signal(3)
+        m.d.comb += next_cmd.eq(arch.Command.NOP)
+        m.d.sync += [cmd.eq(next_cmd), pins.cs_n.eq(0)]
+
+        # Address fields of the request.
+        req = self.i.payload
+        column = req.addr[:g.column_bits]
+        bank = req.addr[g.column_bits:g.column_bits + g.bank_bits]
+        row = req.addr[g.column_bits + g.bank_bits:]
+
+        # Per-bank open row and timers (clocks since the events that constrain the next).
+        open_ = Signal(g.banks)
+        open_row = Array(Signal(g.row_bits, name=f"open_row{b}") for b in range(g.banks))
+        limit = max(t_ras, t_rc, t_wr, t_rp) + 1
+        since_act = Array(Signal(range(limit + 1), init=limit, name=f"since_act{b}")
+                          for b in range(g.banks))
+        since_wr = Array(Signal(range(limit + 1), init=limit, name=f"since_wr{b}")
+                         for b in range(g.banks))
+        since_pre = Array(Signal(range(limit + 1), init=limit, name=f"since_pre{b}")
+                          for b in range(g.banks))
+        for b in range(g.banks):
+            for timer in (since_act[b], since_wr[b], since_pre[b]):
+                with m.If(timer < limit):
+                    m.d.sync += timer.eq(timer + 1)
+
+        # Refresh timer.
+        refresh_count = Signal(range(refresh_every + 1))
+        refresh_due = Signal()
+        m.d.sync += refresh_count.eq(refresh_count + 1)
+        with m.If(refresh_count == refresh_every):
+            m.d.sync += [refresh_count.eq(0), refresh_due.eq(1)]
+
+        # Read data returns CAS latency clocks after the chip sees the READ, which is one
+        # clock after it is decided here; it is sampled into a register, one more.
+        latency = self.cas_latency + 2
+        read_pipe = Signal(latency)
+        dq_in = Signal(g.data_width)
+        m.d.sync += [dq_in.eq(pins.dq_i), read_pipe.eq(Cat(C(0, 1), read_pipe[:-1]))]
+        m.d.comb += [self.o.valid.eq(read_pipe[-1]), self.o.payload.eq(dq_in)]
+
+        wait = Signal(range(max(power_up, t_rfc, t_rp, t_rcd, t_mrd, t_rc, t_ras) + 2))
+        after_wait = Signal(_State)
+        init_refreshes = Signal(range(t.init_refreshes + 1))
+        state = Signal(_State)
+        m.d.comb += self.ready.eq(state.as_value() >= _State.IDLE.value)
+
+        def command(c, *, ba=None, a=None):
+            m.d.comb += next_cmd.eq(c)
+            if ba is not None:
+                m.d.sync += pins.ba.eq(ba)
+            if a is not None:
+                m.d.sync += pins.a.eq(a)
+
+        def wait_then(clocks_, then):
+            # `clocks_` clocks from this command to the next (the command's own included).
+            m.d.sync += [wait.eq(clocks_ - 1), after_wait.eq(then), state.eq(_State.WAIT)]
+
+        # DQM masks write data at once and read data two clocks later: low except for the
+        # bytes a write leaves alone (high during initialisation, as the data sheets ask).
+        m.d.sync += [pins.dq_oe.eq(0), pins.dqm.eq(Mux(self.ready, 0, -1))]
+
+        with m.Switch(state):
+            with m.Case(_State.POWER_UP):
+                # Waits with CKE high and NOPs for the power-up time.
+                m.d.sync += pins.cke.eq(1)
+                wait_then(power_up, _State.INIT_PRE)
+
+            with m.Case(_State.INIT_PRE):
+                # Precharges all banks.
+                command(arch.Command.PRECHARGE, a=1 << arch.A10)
+                m.d.sync += init_refreshes.eq(0)
+                wait_then(t_rp, _State.INIT_REF)
+
+            with m.Case(_State.INIT_REF):
+                # Issues the initialisation's auto refreshes.
+                command(arch.Command.REFRESH)
+                m.d.sync += init_refreshes.eq(init_refreshes + 1)
+                with m.If(init_refreshes == t.init_refreshes - 1):
+                    wait_then(t_rfc, _State.INIT_MODE)
+                with m.Else():
+                    wait_then(t_rfc, _State.INIT_REF)
+
+            with m.Case(_State.INIT_MODE):
+                # Loads the mode register: burst length 1, CAS latency.
+                command(arch.Command.LOAD_MODE, ba=0,
+                        a=arch.mode_register(cas_latency=self.cas_latency))
+                wait_then(t_mrd, _State.IDLE)
+
+            with m.Case(_State.IDLE):
+                # Serves a request, or refreshes when due.
+                with m.If(refresh_due):
+                    with m.If(open_.any()):
+                        m.d.sync += state.eq(_State.PRECHARGE)
+                    with m.Else():
+                        m.d.sync += state.eq(_State.REFRESH)
+                with m.Elif(self.i.valid):
+                    bank_open = open_.bit_select(bank, 1)
+                    with m.If(bank_open & (open_row[bank] == row)):
+                        # The row is open: the access goes out now.
+                        m.d.comb += self.i.ready.eq(1)
+                        m.d.sync += [pins.ba.eq(bank), pins.a.eq(column)]
+                        with m.If(req.write):
+                            m.d.comb += next_cmd.eq(arch.Command.WRITE)
+                            m.d.sync += [pins.dq_o.eq(req.data), pins.dq_oe.eq(1),
+                                         pins.dqm.eq(~req.mask), since_wr[bank].eq(0)]
+                        with m.Else():
+                            m.d.comb += next_cmd.eq(arch.Command.READ)
+                            m.d.sync += read_pipe[0].eq(1)
+                    with m.Elif(bank_open):
+                        m.d.sync += state.eq(_State.PRECHARGE)
+                    with m.Else():
+                        m.d.sync += state.eq(_State.ACTIVATE)
+
+            with m.Case(_State.PRECHARGE):
+                # Closes rows: all banks for a refresh, else the requested bank; waits for
+                # tRAS since its ACTIVE and tWR since its last write.
+                all_ = refresh_due
+                ok = Signal()
+                with m.If(all_):
+                    m.d.comb += ok.eq(Cat((~open_[b]) | ((since_act[b] >= t_ras) &
+                                                        (since_wr[b] >= t_wr))
+                                          for b in range(g.banks)).all())
+                with m.Else():
+                    m.d.comb += ok.eq((since_act[bank] >= t_ras) & (since_wr[bank] >= t_wr))
+                with m.If(ok):
+                    with m.If(all_):
+                        command(arch.Command.PRECHARGE, a=1 << arch.A10)
+                        m.d.sync += open_.eq(0)
+                        for b in range(g.banks):
+                            m.d.sync += since_pre[b].eq(0)
+                        wait_then(t_rp, _State.REFRESH)
+                    with m.Else():
+                        command(arch.Command.PRECHARGE, ba=bank, a=0)
+                        m.d.sync += [open_.bit_select(bank, 1).eq(0), since_pre[bank].eq(0)]
+                        wait_then(t_rp, _State.ACTIVATE)
+
+            with m.Case(_State.REFRESH):
+                # Refreshes (all banks are closed).
+                command(arch.Command.REFRESH)
+                m.d.sync += [refresh_due.eq(0), self.refreshes.eq(self.refreshes + 1)]
+                wait_then(t_rfc, _State.IDLE)
+
+            with m.Case(_State.ACTIVATE):
+                # Opens the requested row, once tRC since the bank's last ACTIVE has passed.
+                with m.If(refresh_due):
+                    m.d.sync += state.eq(_State.IDLE)
+                with m.Elif((since_act[bank] >= t_rc) & (since_pre[bank] >= t_rp)):
+                    command(arch.Command.ACTIVE, ba=bank, a=row)
+                    m.d.sync += [open_.bit_select(bank, 1).eq(1), open_row[bank].eq(row),
+                                 since_act[bank].eq(0)]
+                    wait_then(t_rcd, _State.IDLE)
+
+            with m.Case(_State.WAIT):
+                # Counts down a command's timing (NOPs meanwhile).
+                with m.If(wait == 0):
+                    m.d.sync += state.eq(after_wait)
+                with m.Else():
+                    m.d.sync += wait.eq(wait - 1)
+
+        return m
