@@ -34,6 +34,8 @@ from maglog.hw.frontend import DEFAULT_CHANNELS, TOPLEVEL_NAME, Channel, FrontEn
 from maglog.hw.sdio.cmd import CmdEngine
 from maglog.hw.sdio.dat import DatReader, DatWriter
 from maglog.hw.sdio.host import SdioHost
+from maglog.hw.sdram import SdramController
+from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
 from maglog.hw.uart import UartRx
 
 # The helper beside this script: no __pycache__ in the tree for it.
@@ -80,6 +82,10 @@ def designs(include_parts):
                         FrontEnd))
     found.append(Design("sdio_host", "SdioHost()  # clock, CMD, DAT writer and reader, CSR",
                         SdioHost))
+    for chip in (MT48LC4M32B2, IS42S16160):
+        found.append(Design(f"sdram_{chip.name.lower()}",
+                            f"SdramController({chip.name}, clk_freq=50e6)",
+                            lambda chip=chip: SdramController(chip, clk_freq=50e6)))
     if include_parts:
         found += [
             Design("frame_fifo", "FrameFifo(depth=1024)", lambda: FrameFifo(depth=1024),

@@ -136,6 +136,12 @@ class SdramController(wiring.Component):
                 with m.If(timer < limit):
                     m.d.sync += timer.eq(timer + 1)
 
+        # A write must not drive DQ while the chip still drives data for an earlier read.
+        turnaround = self.cas_latency + 1
+        since_read = Signal(range(turnaround + 1), init=turnaround)
+        with m.If(since_read < turnaround):
+            m.d.sync += since_read.eq(since_read + 1)
+
         # Refresh timer.
         refresh_count = Signal(range(refresh_every + 1))
         refresh_due = Signal()
@@ -208,7 +214,8 @@ class SdramController(wiring.Component):
                         m.d.sync += state.eq(_State.REFRESH)
                 with m.Elif(self.i.valid):
                     bank_open = open_.bit_select(bank, 1)
-                    with m.If(bank_open & (open_row[bank] == row)):
+                    with m.If(bank_open & (open_row[bank] == row) &
+                              (~req.write | (since_read >= turnaround))):
                         # The row is open: the access goes out now.
                         m.d.comb += self.i.ready.eq(1)
                         m.d.sync += [pins.ba.eq(bank), pins.a.eq(column)]
@@ -218,7 +225,9 @@ class SdramController(wiring.Component):
                                          pins.dqm.eq(~req.mask), since_wr[bank].eq(0)]
                         with m.Else():
                             m.d.comb += next_cmd.eq(arch.Command.READ)
-                            m.d.sync += read_pipe[0].eq(1)
+                            m.d.sync += [read_pipe[0].eq(1), since_read.eq(0)]
+                    with m.Elif(bank_open & (open_row[bank] == row)):
+                        pass                    # a write waits for the read data to pass
                     with m.Elif(bank_open):
                         m.d.sync += state.eq(_State.PRECHARGE)
                     with m.Else():
