@@ -1,0 +1,159 @@
+"""RingBuffer over the SDRAM controller and the timing-checking chip model.
+
+Frames go in as the arbiter sends them; sectors come out committed bytes first, zero
+padding after; a full ring drops whole frames and counts them, and never overwrites bytes
+that were not released.
+"""
+
+import random
+
+import pytest
+from amaranth import *
+from amaranth.lib import wiring
+from amaranth.lib.wiring import In, Out
+
+from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
+from maglog.hw.ringbuffer import RingBuffer
+from maglog.hw.sdram import SdramController
+from maglog.sim.amaranth_tb import run_simulation
+from maglog.sim.models.sdram import SdramChip
+from maglog.sim.sdram_amaranth import run_sdram
+
+CLK_FREQ = 50e6
+SECTOR = 512
+
+
+class Harness(wiring.Component):
+    def __init__(self, chip, capacity):
+        self.ctrl = SdramController(chip, clk_freq=CLK_FREQ)
+        self.ring = RingBuffer(chip.geometry, capacity=capacity)
+        super().__init__({})
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.ctrl, m.submodules.ring = self.ctrl, self.ring
+        wiring.connect(m, self.ring.mem, self.ctrl.i)
+        wiring.connect(m, self.ctrl.o, self.ring.mem_data)
+        return m
+
+
+def frames_of(rng, count, *, low=20, high=90):
+    return [b"$" + bytes(rng.randrange(0x20, 0x7F) for _ in range(rng.randrange(low, high)))
+            + b"\r\n" for _ in range(count)]
+
+
+def run(chip, capacity, script):
+    """``script(ctx, ring, ops)``: an async function using the helpers in ``ops``."""
+    dut = Harness(chip, capacity)
+    ring = dut.ring
+    model = SdramChip(chip, clk_freq=CLK_FREQ)
+
+    async def push(ctx, frame):
+        for k, byte in enumerate(frame):
+            ctx.set(ring.i.payload, {"data": byte, "last": k == len(frame) - 1})
+            ctx.set(ring.i.valid, 1)
+            await ctx.tick().until(ring.i.ready)
+        ctx.set(ring.i.valid, 0)
+
+    async def read_sector(ctx, index):
+        ctx.set(ring.read_sector, index)
+        ctx.set(ring.read_start, 1)
+        await ctx.tick()
+        ctx.set(ring.read_start, 0)
+        ctx.set(ring.o.ready, 1)
+        data = bytearray()
+        while len(data) < SECTOR:
+            _, _, valid, byte = await ctx.tick().sample(ring.o.valid, ring.o.payload)
+            if valid:
+                data.append(byte)
+        ctx.set(ring.o.ready, 0)
+        return bytes(data)
+
+    async def release(ctx, sectors):
+        ctx.set(ring.release_sectors, sectors)
+        ctx.set(ring.release, 1)
+        await ctx.tick()
+        ctx.set(ring.release, 0)
+
+    class Ops:
+        pass
+    ops = Ops()
+    ops.push, ops.read_sector, ops.release = push, read_sector, release
+    result = {}
+
+    async def main(ctx):
+        await ctx.tick().until(dut.ctrl.ready)
+        result["value"] = await script(ctx, ring, ops)
+
+    async def chip_side(ctx):
+        await run_sdram(ctx, dut.ctrl.pins, model)
+
+    run_simulation(dut, [main], background=[chip_side], name="ring")
+    assert model.errors == []
+    return result["value"]
+
+
+@pytest.mark.parametrize("chip", [MT48LC4M32B2, IS42S16160], ids=lambda c: c.name)
+def test_frames_come_out_as_sectors_with_padding(chip):
+    frames = frames_of(random.Random(1), 30)
+    stream = b"".join(frames)
+
+    async def script(ctx, ring, ops):
+        for frame in frames:
+            await ops.push(ctx, frame)
+        level = ctx.get(ring.level)
+        sectors = [await ops.read_sector(ctx, k) for k in range(-(-level // SECTOR))]
+        return level, sectors, ctx.get(ring.kept), ctx.get(ring.dropped)
+
+    level, sectors, kept, dropped = run(chip, 1 << 14, script)
+    assert level == len(stream) and kept == 30 and dropped == 0
+    data = b"".join(sectors)
+    assert data[:level] == stream
+    assert data[level:] == bytes(len(data) - level)
+
+
+def test_full_ring_drops_whole_frames_and_keeps_unreleased_bytes():
+    chip = MT48LC4M32B2
+    capacity = 2048
+    rng = random.Random(2)
+    first = frames_of(rng, 60)
+    later = frames_of(rng, 10)
+
+    async def script(ctx, ring, ops):
+        for frame in first:
+            await ops.push(ctx, frame)
+        level_full = ctx.get(ring.level)
+        before = [await ops.read_sector(ctx, k) for k in range(capacity // SECTOR)]
+        dropped = ctx.get(ring.dropped)
+        # The card took two sectors: they are released and new frames fit again.
+        await ops.release(ctx, 2)
+        for frame in later:
+            await ops.push(ctx, frame)
+        after = [await ops.read_sector(ctx, k) for k in range(capacity // SECTOR)]
+        return (level_full, b"".join(before), dropped, ctx.get(ring.level), b"".join(after),
+                ctx.get(ring.kept), ctx.get(ring.dropped), ctx.get(ring.high_water))
+
+    (level_full, before, dropped, level, after, kept, dropped_total,
+     high_water) = run(chip, capacity, script)
+    # Frames were kept while they fitted whole; the rest were dropped whole.
+    fitted, used = [], 0
+    for frame in first:
+        if used + len(frame) <= capacity:
+            fitted.append(frame)
+            used += len(frame)
+    kept_first = [f for f in first if f in fitted]
+    assert level_full == used
+    assert before[:used] == b"".join(kept_first)
+    assert dropped == len(first) - len(kept_first) > 0
+    # After the release, the unreleased bytes are untouched and the new frames follow them.
+    tail = b"".join(kept_first)[2 * SECTOR:]
+    assert after[:len(tail)] == tail
+    assert kept == len(kept_first) + (kept - len(kept_first))
+    assert high_water >= level_full
+    assert dropped_total >= dropped
+    assert level == len(tail) + sum(len(f) for f in later[:kept - len(kept_first)])
+
+
+def test_capacity_is_checked():
+    with pytest.raises(ValueError, match="Capacity must be a power of two of whole sectors"):
+        RingBuffer(MT48LC4M32B2.geometry, capacity=1000)
