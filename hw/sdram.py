@@ -31,7 +31,7 @@ def sdram_pins_signature(geometry):
         "cas_n": Out(1, init=1),
         "we_n":  Out(1, init=1),
         "cke":   Out(1),
-        "dqm":   Out(geometry.data_width // 8, init=-1),
+        "dqm":   Out(geometry.data_width // 8, init=(1 << geometry.data_width // 8) - 1),
         "dq_o":  Out(geometry.data_width),
         "dq_oe": Out(1),
         "dq_i":  In(geometry.data_width),

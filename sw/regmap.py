@@ -84,13 +84,20 @@ class RegisterMap:
     ----------
     memory_map : amaranth_soc MemoryMap
         The gateware's map (e.g. ``SdioHost().bus.memory_map``).
+    window : str or None
+        Only the registers under this window of a decoder's map, named without it.
     base : int
         Word address of the map on the bus the firmware uses.
     """
-    def __init__(self, memory_map, *, base=0):
+    def __init__(self, memory_map, *, base=0, window=None):
         self._registers = {}
         for info in memory_map.all_resources():
-            name = "_".join(str(part) for part in info.path[-1])
+            path = ["_".join(str(p) for p in part) for part in info.path]
+            if window is not None:
+                if path[0] != window:
+                    continue
+                path = path[1:]
+            name = "_".join(path)
             fields, offset = {}, 0
             for path, action in info.resource.field.flatten():
                 # The action's own data member keeps the field's declared shape (a struct

@@ -252,19 +252,36 @@ class SdCardDriver:
         raise SdCrcError(f"block {lba}: read data CRC error on all {CMD_RETRIES} tries")
 
     async def write_blocks(self, lba, data, *, pre_erase=True):
-        """Write ``data`` (whole blocks) from block ``lba`` on: CMD24 for one block, else
-        ACMD23 (pre-erase count) and CMD25 ended by CMD12. A block the card rejects is sent
-        again (after CMD12 and a status check), up to a limit; raises
-        :class:`SdWriteError` with the count of blocks that are safely written."""
+        """Write ``data`` (whole blocks), queued on the block port, from block ``lba`` on;
+        see :meth:`write_from`."""
         if len(data) % arch.BLOCK_BYTES or not data:
             raise ValueError(f"Write data must be whole {arch.BLOCK_BYTES}-byte blocks, "
                              f"not {len(data)} bytes")
+
+        class PortSource:
+            async def arm(source, first, count):
+                await self.port.send(data[first * arch.BLOCK_BYTES:
+                                          (first + count) * arch.BLOCK_BYTES])
+
+            async def cancel(source):
+                await self.port.discard()
+
+        return await self.write_from(lba, len(data) // arch.BLOCK_BYTES, PortSource(),
+                                     pre_erase=pre_erase)
+
+    async def write_from(self, lba, count, source, *, pre_erase=True):
+        """Write ``count`` blocks from block ``lba`` on, their bytes streamed to the host by
+        ``source`` (``await source.arm(first, n)`` sets it up to send blocks first ..
+        first+n-1 of the run; ``await source.cancel()`` drops what it has not sent). CMD24
+        for one block, else ACMD23 (pre-erase count) and CMD25 ended by CMD12. A block the
+        card rejects is sent again (after CMD12 and a status check), up to a limit; raises
+        :class:`SdWriteError` with the count of blocks that are safely written. Returns
+        ``count``."""
         done = 0
-        total = len(data) // arch.BLOCK_BYTES
         failures = 0
-        while done < total:
-            accepted, error = await self._write_run(lba + done,
-                                                    data[done * arch.BLOCK_BYTES:], pre_erase)
+        while done < count:
+            accepted, error = await self._write_run(lba + done, done, count - done, source,
+                                                    pre_erase)
             done += accepted
             if error is None:
                 continue
@@ -274,22 +291,21 @@ class SdCardDriver:
                 raise SdWriteError(f"writing block {lba + done} failed: {error}", done)
         return done
 
-    async def _write_run(self, lba, data, pre_erase):
+    async def _write_run(self, lba, first, count, source, pre_erase):
         regs = self.regs
-        count = len(data) // arch.BLOCK_BYTES
         multi = count > 1
         if multi and pre_erase:
             await self.app_command(arch.AppCommand.SET_WR_BLK_ERASE_COUNT, count,
                                    arch.Response.R1)
         await self.bus.write(regs["blocks"].address, count)
-        await self.port.send(data)
+        await source.arm(first, count)
         index = arch.Command.WRITE_MULTIPLE_BLOCK if multi else arch.Command.WRITE_BLOCK
         try:
             await self.command(index, lba, arch.Response.R1, data=DataPhase.WRITE)
         except (SdCrcError, SdCardError) as error:
             # The data phase may have started or not; stop it cleanly and try again.
             await self._wait_dat(f"CMD{index}")
-            await self.port.discard()
+            await source.cancel()
             await self._stop_quietly()
             return 0, str(error)
         status = await self._wait_dat(f"writing from block {lba}")
@@ -300,7 +316,7 @@ class SdCardDriver:
             # still be in rcv).
             await self._stop_quietly()
         if failed:
-            await self.port.discard()
+            await source.cancel()
             return accepted, ", ".join(k[len("write."):] for k in failed)
         return accepted, None
 

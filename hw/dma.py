@@ -1,0 +1,234 @@
+"""DMA between the ring buffer, a CPU sector buffer and the SD host's byte streams."""
+
+from amaranth import *
+from amaranth.lib import enum, stream, wiring
+from amaranth.lib.memory import Memory
+from amaranth.lib.wiring import In, Out
+
+from .arch import sd as arch_sd
+from .soc import csr
+
+
+__all__ = ["DmaSource", "Dma"]
+
+WORD_BYTES = 4
+BUFFER_WORDS = arch_sd.BLOCK_BYTES // WORD_BYTES
+
+
+class DmaSource(enum.Enum, shape=1):
+    """Where the bytes of the next write come from."""
+    RING   = 0    # `sectors` sectors from the ring's read pointer on
+    BUFFER = 1    # the CPU sector buffer (one sector: FAT, directory, boot sectors)
+
+
+class Dma(wiring.Component):
+    """Feeds the SD host's write stream and fills the CPU sector buffer from its read stream.
+
+    ``start`` (register ``control``) arms a write: from the ring, sector after sector (each
+    one asked of the ring as the previous one ends), or the sector buffer once. The SD host
+    pulls the bytes as its DAT writer needs them, so a stalled card stalls the DMA, never the
+    other way round. ``release`` hands sectors the card has accepted back to the ring. Read
+    data from the SD host always goes into the sector buffer (from its start after
+    ``arm_read``). The CPU reads and writes the buffer a 32-bit word at a time through
+    ``buffer_data``, at ``buffer_index``, which moves on by one at each access.
+
+    Members
+    -------
+    bus : ``In(csr.Signature(...))``
+    ring_read_start, ring_read_sector, ring_release, ring_release_sectors : ``Out``
+    ring_o : ``In(stream.Signature(8))``; ring_reading : ``In(1)``
+    ring_level, ring_high_water, ring_kept, ring_dropped : ``In``
+    sd_i : ``Out(stream.Signature(8))``  (to ``SdioHost.i``)
+    sd_o : ``In(stream.Signature(8))``   (from ``SdioHost.o``)
+    """
+
+    class Control(csr.Register, access="w"):
+        """Writing arms a DMA write of `sectors` sectors from `source` (for the ring: from
+        its sector `first` after the read pointer on), or (arm_read) points the sector
+        buffer's fill position back at its start. `abort` ends an armed write (after a
+        failed transfer): the rest of a sector already asked of the ring is read and
+        dropped, so the ring stays in step."""
+        start:    csr.Field(csr.action.W, 1)
+        source:   csr.Field(csr.action.W, DmaSource)
+        arm_read: csr.Field(csr.action.W, 1)
+        sectors:  csr.Field(csr.action.W, 12)
+        first:    csr.Field(csr.action.W, 12)
+        abort:    csr.Field(csr.action.W, 1)
+
+    class Release(csr.Register, access="w"):
+        """Sectors the card has accepted, handed back to the ring."""
+        sectors: csr.Field(csr.action.W, 16)
+
+    class Status(csr.Register, access="r"):
+        """A write is armed and not all its sectors have gone out; sectors sent so far."""
+        busy: csr.Field(csr.action.R, 1)
+        sent: csr.Field(csr.action.R, 16)
+
+    class Level(csr.Register, access="r"):
+        """Committed bytes in the ring that the card does not have yet."""
+        bytes: csr.Field(csr.action.R, 32)
+
+    class HighWater(csr.Register, access="r"):
+        """The most committed bytes the ring ever held."""
+        bytes: csr.Field(csr.action.R, 32)
+
+    class Kept(csr.Register, access="r"):
+        """Frames stored in the ring."""
+        frames: csr.Field(csr.action.R, 32)
+
+    class Dropped(csr.Register, access="r"):
+        """Frames dropped because the ring was full."""
+        frames: csr.Field(csr.action.R, 32)
+
+    class BufferSeek(csr.Register, access="w"):
+        """Moves the sector buffer's word index (for `buffer_write` and `buffer_read`)."""
+        index: csr.Field(csr.action.W, 7)
+
+    class BufferWrite(csr.Register, access="w"):
+        """Writes a word (bytes low first) at the index, which moves on by one."""
+        word: csr.Field(csr.action.W, 32)
+
+    class BufferRead(csr.Register, access="r"):
+        """The word at the index; reading moves the index on by one."""
+        word: csr.Field(csr.action.R, 32)
+
+    def __init__(self, *, level_bits=32):
+        regs = csr.Builder(addr_width=4, data_width=32, granularity=8)
+        self._control = regs.add("control", self.Control())
+        self._release = regs.add("release", self.Release())
+        self._status = regs.add("status", self.Status())
+        self._level = regs.add("level", self.Level())
+        self._high_water = regs.add("high_water", self.HighWater())
+        self._kept = regs.add("kept", self.Kept())
+        self._dropped = regs.add("dropped", self.Dropped())
+        self._buffer_seek = regs.add("buffer_seek", self.BufferSeek())
+        self._buffer_write = regs.add("buffer_write", self.BufferWrite())
+        self._buffer_read = regs.add("buffer_read", self.BufferRead())
+        self._bridge = csr.Bridge(regs.as_memory_map())
+        super().__init__({
+            "bus":                  In(csr.Signature(addr_width=regs.addr_width,
+                                                     data_width=regs.data_width)),
+            "ring_read_start":      Out(1),
+            "ring_read_sector":     Out(16),
+            "ring_o":               In(stream.Signature(8)),
+            "ring_reading":         In(1),
+            "ring_release":         Out(1),
+            "ring_release_sectors": Out(16),
+            "ring_level":           In(level_bits),
+            "ring_high_water":      In(level_bits),
+            "ring_kept":            In(32),
+            "ring_dropped":         In(32),
+            "sd_i":                 Out(stream.Signature(8)),
+            "sd_o":                 In(stream.Signature(8)),
+        })
+        self.bus.memory_map = self._bridge.bus.memory_map
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.bridge = self._bridge
+        wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
+
+        m.submodules.buffer = buffer = Memory(shape=32, depth=BUFFER_WORDS, init=[])
+        cpu_read = buffer.read_port(domain="comb")
+        cpu_write = buffer.write_port()
+        dma_read = buffer.read_port(domain="comb")
+        fill_write = buffer.write_port(granularity=8)
+
+        # Ring status.
+        m.d.comb += [
+            self._level.f.bytes.r_data.eq(self.ring_level),
+            self._high_water.f.bytes.r_data.eq(self.ring_high_water),
+            self._kept.f.frames.r_data.eq(self.ring_kept),
+            self._dropped.f.frames.r_data.eq(self.ring_dropped),
+            self.ring_release.eq(self._release.f.sectors.w_stb),
+            self.ring_release_sectors.eq(self._release.f.sectors.w_data),
+        ]
+
+        # CPU access to the sector buffer, a word at a time, the index moving on.
+        index = Signal(range(BUFFER_WORDS))
+        seek, write, read = (self._buffer_seek.f.index, self._buffer_write.f.word,
+                             self._buffer_read.f.word)
+        m.d.comb += [
+            cpu_read.addr.eq(index),
+            read.r_data.eq(cpu_read.data),
+            cpu_write.addr.eq(index),
+            cpu_write.data.eq(write.w_data),
+            cpu_write.en.eq(write.w_stb),
+        ]
+        with m.If(seek.w_stb):
+            m.d.sync += index.eq(seek.w_data)
+        with m.Elif(write.w_stb | read.r_stb):
+            m.d.sync += index.eq(index + 1)
+
+        # SD read data fills the buffer from its start (after arm_read).
+        fill = Signal(range(arch_sd.BLOCK_BYTES + 1))
+        control = self._control.f
+        m.d.comb += [
+            self.sd_o.ready.eq(1),
+            fill_write.addr.eq(fill[2:]),
+            fill_write.data.eq(Cat([self.sd_o.payload] * WORD_BYTES)),
+        ]
+        with m.If(self.sd_o.valid & (fill < arch_sd.BLOCK_BYTES)):
+            m.d.comb += fill_write.en.eq(1 << fill[:2])
+            m.d.sync += fill.eq(fill + 1)
+        with m.If(control.arm_read.w_stb & control.arm_read.w_data):
+            m.d.sync += fill.eq(0)
+
+        # Write side: sectors from the ring, or the buffer, to the SD host.
+        busy    = Signal()
+        source  = Signal(DmaSource)
+        sectors = Signal(16)
+        sent    = Signal(16)
+        first   = Signal(12)
+        count   = Signal(range(arch_sd.BLOCK_BYTES + 1))
+        asked   = Signal()                 # the ring was asked for the current sector
+        m.d.comb += [
+            self._status.f.busy.r_data.eq(busy),
+            self._status.f.sent.r_data.eq(sent),
+            self.ring_read_sector.eq(first + sent),
+            dma_read.addr.eq(count[2:]),
+        ]
+        with m.If(control.start.w_stb & control.start.w_data & ~busy &
+                  (control.sectors.w_data != 0)):
+            m.d.sync += [
+                busy.eq(1), source.eq(control.source.w_data),
+                sectors.eq(Mux(control.source.w_data == DmaSource.BUFFER, 1,
+                               control.sectors.w_data)),
+                sent.eq(0), count.eq(0), asked.eq(0), first.eq(control.first.w_data),
+            ]
+        discarding = Signal()
+        with m.If(control.abort.w_stb & control.abort.w_data & busy):
+            with m.If((source == DmaSource.RING) & asked):
+                m.d.sync += discarding.eq(1)
+            with m.Else():
+                m.d.sync += busy.eq(0)
+        with m.If(discarding):
+            m.d.comb += self.ring_o.ready.eq(1)
+            with m.If(self.ring_o.valid):
+                m.d.sync += count.eq(count + 1)
+                with m.If(count == arch_sd.BLOCK_BYTES - 1):
+                    m.d.sync += [count.eq(0), asked.eq(0), busy.eq(0), discarding.eq(0)]
+        with m.Elif(busy & (source == DmaSource.RING)):
+            with m.If(~asked):
+                # Asks the ring for the next sector once it is free.
+                with m.If(~self.ring_reading):
+                    m.d.comb += self.ring_read_start.eq(1)
+                    m.d.sync += asked.eq(1)
+            with m.Else():
+                m.d.comb += [
+                    self.sd_i.valid.eq(self.ring_o.valid),
+                    self.sd_i.payload.eq(self.ring_o.payload),
+                    self.ring_o.ready.eq(self.sd_i.ready),
+                ]
+        with m.If(busy & ~discarding & (source == DmaSource.BUFFER)):
+            m.d.comb += [
+                self.sd_i.valid.eq(1),
+                self.sd_i.payload.eq(dma_read.data.word_select(count[:2], 8)),
+            ]
+        with m.If(self.sd_i.valid & self.sd_i.ready):
+            m.d.sync += count.eq(count + 1)
+            with m.If(count == arch_sd.BLOCK_BYTES - 1):
+                m.d.sync += [count.eq(0), asked.eq(0), sent.eq(sent + 1)]
+                with m.If(sent + 1 == sectors):
+                    m.d.sync += busy.eq(0)
+        return m

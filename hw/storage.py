@@ -1,0 +1,97 @@
+"""The storage path: frames into the SDRAM ring, sectors through the DMA to the SD card."""
+
+from amaranth import *
+from amaranth.lib import stream, wiring
+from amaranth.lib.wiring import In, Out
+
+from .dma import Dma
+from .frame_fifo import FrameByte
+from .ringbuffer import RingBuffer
+from .sdio.host import SdioHost
+from .sdram import SdramController, sdram_pins_signature
+from .soc import csr
+
+
+__all__ = ["Storage", "sd_pins_signature"]
+
+
+def sd_pins_signature():
+    return wiring.Signature({
+        "clk":    Out(1),
+        "cmd_o":  Out(1, init=1),
+        "cmd_oe": Out(1),
+        "cmd_i":  In(1, init=1),
+        "dat_o":  Out(4, init=0xF),
+        "dat_oe": Out(1),
+        "dat_i":  In(4, init=0xF),
+    })
+
+
+class Storage(wiring.Component):
+    """Ring buffer over the SDRAM controller, DMA and SD host, with their registers behind
+    one CSR bus (windows ``sdio`` and ``dma``).
+
+    Members
+    -------
+    i : ``In(stream.Signature(FrameByte))``
+        Kept frames, as the arbiter sends them.
+    bus : ``In(csr.Signature(...))``
+    sdram : ``Out(sdram_pins_signature(...))``; sd : ``Out(sd_pins_signature())``
+    sdram_ready : ``Out(1)``
+    """
+    def __init__(self, chip, *, clk_freq, cas_latency=2, capacity=None):
+        self.ctrl = SdramController(chip, clk_freq=clk_freq, cas_latency=cas_latency)
+        self.ring = RingBuffer(chip.geometry, capacity=capacity)
+        self.dma = Dma(level_bits=len(self.ring.level))
+        self.sdio = SdioHost()
+        self._decoder = csr.Decoder(addr_width=6, data_width=32)
+        self._decoder.add(self.sdio.bus, name="sdio")
+        self._decoder.add(self.dma.bus, name="dma")
+        super().__init__({
+            "i":           In(stream.Signature(FrameByte())),
+            "bus":         In(csr.Signature(addr_width=self._decoder.bus.addr_width,
+                                            data_width=32)),
+            "sdram":       Out(sdram_pins_signature(chip.geometry)),
+            "sd":          Out(sd_pins_signature()),
+            "sdram_ready": Out(1),
+        })
+        self.bus.memory_map = self._decoder.bus.memory_map
+
+    def elaborate(self, platform):
+        m = Module()
+        ctrl, ring, dma, sdio = self.ctrl, self.ring, self.dma, self.sdio
+        m.submodules.ctrl, m.submodules.ring = ctrl, ring
+        m.submodules.dma, m.submodules.sdio = dma, sdio
+        m.submodules.decoder = self._decoder
+        wiring.connect(m, wiring.flipped(self.bus), self._decoder.bus)
+
+        wiring.connect(m, wiring.flipped(self.i), ring.i)
+        wiring.connect(m, ring.mem, ctrl.i)
+        wiring.connect(m, ctrl.o, ring.mem_data)
+        wiring.connect(m, ctrl.pins, wiring.flipped(self.sdram))
+        m.d.comb += self.sdram_ready.eq(ctrl.ready)
+
+        m.d.comb += [
+            ring.read_start.eq(dma.ring_read_start),
+            ring.read_sector.eq(dma.ring_read_sector),
+            ring.release.eq(dma.ring_release),
+            ring.release_sectors.eq(dma.ring_release_sectors),
+            dma.ring_reading.eq(ring.reading),
+            dma.ring_level.eq(ring.level),
+            dma.ring_high_water.eq(ring.high_water),
+            dma.ring_kept.eq(ring.kept),
+            dma.ring_dropped.eq(ring.dropped),
+        ]
+        wiring.connect(m, ring.o, dma.ring_o)
+        wiring.connect(m, dma.sd_i, sdio.i)
+        wiring.connect(m, sdio.o, dma.sd_o)
+
+        sd = self.sd
+        m.d.comb += [
+            sd.clk.eq(sdio.sd_clk),
+            sd.cmd_o.eq(sdio.sd_cmd_o), sd.cmd_oe.eq(sdio.sd_cmd_oe),
+            sdio.sd_cmd_i.eq(sd.cmd_i),
+            sd.dat_o.eq(sdio.sd_dat_o), sd.dat_oe.eq(sdio.sd_dat_oe),
+            sdio.sd_dat_i.eq(sd.dat_i),
+        ]
+        return m
