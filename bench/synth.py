@@ -34,6 +34,8 @@ from maglog.hw.frontend import DEFAULT_CHANNELS, TOPLEVEL_NAME, Channel, FrontEn
 from maglog.hw.sdio.cmd import CmdEngine
 from maglog.hw.sdio.dat import DatReader, DatWriter
 from maglog.hw.sdio.host import SdioHost
+from maglog.hw.dma import Dma
+from maglog.hw.ringbuffer import RingBuffer
 from maglog.hw.sdram import SdramController
 from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
 from maglog.hw.uart import UartRx
@@ -86,6 +88,9 @@ def designs(include_parts):
         found.append(Design(f"sdram_{chip.name.lower()}",
                             f"SdramController({chip.name}, clk_freq=50e6)",
                             lambda chip=chip: SdramController(chip, clk_freq=50e6)))
+    found.append(Design("ring_buffer", "RingBuffer(MT48LC4M32B2.geometry)  # whole 16 MiB",
+                        lambda: RingBuffer(MT48LC4M32B2.geometry)))
+    found.append(Design("dma", "Dma()", Dma))
     if include_parts:
         found += [
             Design("frame_fifo", "FrameFifo(depth=1024)", lambda: FrameFifo(depth=1024),

@@ -1,5 +1,7 @@
 """DMA between the ring buffer, a CPU sector buffer and the SD host's byte streams."""
 
+from types import SimpleNamespace
+
 from amaranth import *
 from amaranth.lib import enum, stream, wiring
 from amaranth.lib.memory import Memory
@@ -129,10 +131,24 @@ class Dma(wiring.Component):
         wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
 
         m.submodules.buffer = buffer = Memory(shape=32, depth=BUFFER_WORDS, init=[])
-        cpu_read = buffer.read_port(domain="comb")
-        cpu_write = buffer.write_port()
-        dma_read = buffer.read_port(domain="comb")
-        fill_write = buffer.write_port(granularity=8)
+        # One write port and one synchronous read port, so that the buffer is one M9K: CPU
+        # words and SD read bytes share the write port (a fill wins; the firmware does not
+        # write the buffer while a read fills it), the CPU and the DMA share the read port
+        # (the DMA while it sends the buffer). A read port is given the next cycle's address.
+        write_port = buffer.write_port(granularity=8)
+        read_port = buffer.read_port()
+        cpu_write = SimpleNamespace(addr=Signal(range(BUFFER_WORDS)), data=Signal(32),
+                                    en=Signal())
+        fill_write = SimpleNamespace(addr=Signal(range(BUFFER_WORDS)), data=Signal(32),
+                                     en=Signal(WORD_BYTES))
+        cpu_read = SimpleNamespace(addr=Signal(range(BUFFER_WORDS)), data=read_port.data)
+        dma_read = SimpleNamespace(addr=Signal(range(BUFFER_WORDS)), data=read_port.data)
+        with m.If(fill_write.en.any()):
+            m.d.comb += [write_port.addr.eq(fill_write.addr), write_port.data.eq(fill_write.data),
+                         write_port.en.eq(fill_write.en)]
+        with m.Else():
+            m.d.comb += [write_port.addr.eq(cpu_write.addr), write_port.data.eq(cpu_write.data),
+                         write_port.en.eq(Mux(cpu_write.en, (1 << WORD_BYTES) - 1, 0))]
 
         # Ring status.
         m.d.comb += [
@@ -146,19 +162,24 @@ class Dma(wiring.Component):
 
         # CPU access to the sector buffer, a word at a time, the index moving on.
         index = Signal(range(BUFFER_WORDS))
+        index_next = Signal.like(index)
         seek, write, read = (self._buffer_seek.f.index, self._buffer_write.f.word,
                              self._buffer_read.f.word)
+        with m.If(seek.w_stb):
+            m.d.comb += index_next.eq(seek.w_data)
+        with m.Elif(write.w_stb | read.r_stb):
+            m.d.comb += index_next.eq(index + 1)
+        with m.Else():
+            m.d.comb += index_next.eq(index)
+        m.d.sync += index.eq(index_next)
+        # The read port is given the next index (a word just written is not read back at once).
         m.d.comb += [
-            cpu_read.addr.eq(index),
+            cpu_read.addr.eq(index_next),
             read.r_data.eq(cpu_read.data),
             cpu_write.addr.eq(index),
             cpu_write.data.eq(write.w_data),
             cpu_write.en.eq(write.w_stb),
         ]
-        with m.If(seek.w_stb):
-            m.d.sync += index.eq(seek.w_data)
-        with m.Elif(write.w_stb | read.r_stb):
-            m.d.sync += index.eq(index + 1)
 
         # SD read data fills the buffer from its start (after arm_read).
         fill = Signal(range(arch_sd.BLOCK_BYTES + 1))
@@ -186,10 +207,11 @@ class Dma(wiring.Component):
             self._status.f.busy.r_data.eq(busy),
             self._status.f.sent.r_data.eq(sent),
             self.ring_read_sector.eq(first + sent),
-            dma_read.addr.eq(count[2:]),
         ]
-        with m.If(control.start.w_stb & control.start.w_data & ~busy &
-                  (control.sectors.w_data != 0)):
+        starting = Signal()
+        m.d.comb += starting.eq(control.start.w_stb & control.start.w_data & ~busy &
+                                (control.sectors.w_data != 0))
+        with m.If(starting):
             m.d.sync += [
                 busy.eq(1), source.eq(control.source.w_data),
                 sectors.eq(Mux(control.source.w_data == DmaSource.BUFFER, 1,
@@ -225,6 +247,16 @@ class Dma(wiring.Component):
                 self.sd_i.valid.eq(1),
                 self.sd_i.payload.eq(dma_read.data.word_select(count[:2], 8)),
             ]
+        # The buffer's read port is given the word of the byte after a transfer.
+        step = self.sd_i.valid & self.sd_i.ready
+        m.d.comb += dma_read.addr.eq(Mux(step, count + 1, count)[2:])
+        sending = busy & (source == DmaSource.BUFFER)
+        with m.If(starting & (control.source.w_data == DmaSource.BUFFER)):
+            m.d.comb += read_port.addr.eq(0)        # the first word, ready when sending starts
+        with m.Elif(sending):
+            m.d.comb += read_port.addr.eq(dma_read.addr)
+        with m.Else():
+            m.d.comb += read_port.addr.eq(cpu_read.addr)
         with m.If(self.sd_i.valid & self.sd_i.ready):
             m.d.sync += count.eq(count + 1)
             with m.If(count == arch_sd.BLOCK_BYTES - 1):

@@ -36,6 +36,7 @@ def test_cpu_sector_goes_out_to_the_sd_host():
         for k in range(0, SECTOR, 4):
             await bus.write(regs["buffer_write"].address, int.from_bytes(sector[k:k + 4],
                                                                          "little"))
+        await bus.write(regs["buffer_seek"].address, 5)     # the DMA starts at word 0 anyway
         await bus.write(regs["control"].address, regs["control"].encode(
             start=1, source=DmaSource.BUFFER.value, sectors=1))
         while regs["status"].decode(await bus.read(regs["status"].address))["busy"]:
