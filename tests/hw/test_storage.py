@@ -9,10 +9,13 @@ import random
 from types import SimpleNamespace
 
 import pytest
+from amaranth import *
+from amaranth.lib import wiring
 
 from maglog.hw.arch import sd as arch_sd
 from maglog.hw.arch.sdram import MT48LC4M32B2
 from maglog.hw.dma import DmaSource
+from maglog.hw.arbiter import FrameArbiter
 from maglog.hw.storage import Storage
 from maglog.sim.amaranth_tb import run_simulation
 from maglog.sim.models.card_image import CardImage
@@ -44,14 +47,38 @@ class RingSource:
         await self.bus.write(control.address, control.encode(abort=1))
 
 
-def frames_of(rng, count):
-    return [b"$" + bytes(rng.randrange(0x20, 0x7F) for _ in range(rng.randrange(30, 100)))
+BODY = bytes(b for b in range(0x20, 0x7F) if b != ord("$"))
+
+
+def frames_of(rng, count, tag=b""):
+    return [b"$" + tag + bytes(rng.choice(BODY) for _ in range(rng.randrange(30, 100)))
             + b"\r\n" for _ in range(count)]
 
 
-def run(batches, *, capacity, flush_between=True):
-    """Push each batch of frames, flushing after each (or only at the end)."""
-    storage = Storage(MT48LC4M32B2, clk_freq=CLK_FREQ, capacity=capacity)
+class Chain(wiring.Component):
+    """The arbiter in front of the storage path, as in the logger."""
+    def __init__(self, channels, capacity):
+        self.arbiter = FrameArbiter(channels)
+        self.storage = Storage(MT48LC4M32B2, clk_freq=CLK_FREQ, capacity=capacity)
+        super().__init__({})
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.arbiter, m.submodules.storage = self.arbiter, self.storage
+        m.d.comb += [
+            self.storage.i.valid.eq(self.arbiter.o.valid),
+            self.storage.i.payload.data.eq(self.arbiter.o.payload.data),
+            self.storage.i.payload.last.eq(self.arbiter.o.payload.last),
+            self.arbiter.o.ready.eq(self.storage.i.ready),
+        ]
+        return m
+
+
+def run(batches, *, capacity, flush_between=True, channels=1):
+    """Push each batch of frames (a list per channel when ``channels`` > 1) through the
+    arbiter, flushing after each batch (or only at the end)."""
+    chain = Chain(channels, capacity)
+    storage = chain.storage
     sdram = SdramChip(MT48LC4M32B2, clk_freq=CLK_FREQ)
     card = SdCard(CardImage(1 << 15), seed=3)
     pins = SimpleNamespace(sd_clk=storage.sd.clk, sd_cmd_o=storage.sd.cmd_o,
@@ -60,13 +87,31 @@ def run(batches, *, capacity, flush_between=True):
                            sd_dat_i=storage.sd.dat_i)
     result = {}
 
+    pending = [[] for _ in range(channels)]
+
+    def feeder(k):
+        async def feed(ctx):
+            port = chain.arbiter.i[k]
+            while True:
+                if not pending[k]:
+                    ctx.set(port.valid, 0)
+                    await ctx.tick()
+                    continue
+                frame = pending[k][0]
+                for n, byte in enumerate(frame):
+                    ctx.set(port.payload, {"data": byte, "last": n == len(frame) - 1})
+                    ctx.set(port.valid, 1)
+                    await ctx.tick().until(port.ready)
+                ctx.set(port.valid, 0)
+                pending[k].pop(0)
+        return feed
+
     async def push(ctx, frames):
-        for frame in frames:
-            for k, byte in enumerate(frame):
-                ctx.set(storage.i.payload, {"data": byte, "last": k == len(frame) - 1})
-                ctx.set(storage.i.valid, 1)
-                await ctx.tick().until(storage.i.ready)
-        ctx.set(storage.i.valid, 0)
+        per_channel = frames if channels > 1 else [frames]
+        for k, channel_frames in enumerate(per_channel):
+            pending[k].extend(channel_frames)
+        while any(pending):
+            await ctx.tick()
 
     async def firmware(ctx):
         bus = CsrBus(ctx, storage.bus, clock_period=1 / DRIVER_CLOCK_HZ)
@@ -108,7 +153,9 @@ def run(batches, *, capacity, flush_between=True):
     async def card_side(ctx):
         await run_card(ctx, pins, card)
 
-    run_simulation(storage, [firmware], background=[sdram_side, card_side], name="storage")
+    run_simulation(chain, [firmware],
+                   background=[sdram_side, card_side] + [feeder(k) for k in range(channels)],
+                   name="storage")
     assert sdram.errors == [] and card.errors == []
     return result, card.image
 
@@ -145,3 +192,18 @@ def test_full_ring_drops_whole_frames_and_counts_them():
     assert result["high_water"] == used
     stream = b"".join(fitted)
     assert image_bytes(image, FIRST_LBA, -(-len(stream) // SECTOR))[:len(stream)] == stream
+
+
+def test_frames_of_several_channels_arrive_whole_and_in_order():
+    rng = random.Random(3)
+    batches = [[frames_of(rng, 8, b"A"), frames_of(rng, 6, b"B")] for _ in range(2)]
+    result, image = run(batches, capacity=1 << 14, channels=2)
+    total = sum(len(f) for batch in batches for channel in batch for f in channel)
+    data = image_bytes(image, FIRST_LBA, -(-total // SECTOR))[:total]
+    # The card holds whole frames, each channel's in its own order.
+    frames = [b"$" + part for part in data.split(b"$")[1:]]
+    assert b"".join(frames) == data
+    for k in range(2):
+        sent = [f for batch in batches for f in batch[k]]
+        assert [f for f in frames if f[1:2] == b"AB"[k:k + 1]] == sent
+    assert result["kept"] == sum(len(channel) for batch in batches for channel in batch)
