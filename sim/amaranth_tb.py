@@ -68,7 +68,12 @@ async def feed_stream(ctx, stream, payloads, *, hold=None):
                 await ctx.tick()
         ctx.set(stream.payload, payload)
         ctx.set(stream.valid, 1)
-        await ctx.tick().until(stream.ready)
+        # (plain awaits, not tick().until(): an async generator still waiting when the
+        # simulation ends is reported by Python as an unraisable exception)
+        while True:
+            _, _, ready = await ctx.tick().sample(stream.ready)
+            if ready:
+                break
     ctx.set(stream.valid, 0)
 
 

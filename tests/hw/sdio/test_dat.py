@@ -19,10 +19,6 @@ from maglog.sim.amaranth_tb import collect_payloads, feed_stream, run_simulation
 
 CRC16 = crc.Calculator(crc.Crc16.XMODEM)
 
-# A run that stops early (a rejected block) ends the simulation while the byte source still
-# waits for `ready`; Amaranth then closes that coroutine, which Python reports as unraisable.
-pytestmark = pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
-
 
 def lane_crcs(block):
     nibbles = [n for byte in block for n in (byte >> 4, byte & 0xF)]
