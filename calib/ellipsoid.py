@@ -1,0 +1,152 @@
+"""Ellipsoid fitting with octant-coverage gating.
+
+Samples of a constant field seen from many attitudes lie on an ellipsoid (soft and hard
+iron); fitting it gives the centre (hard iron) and the matrix that maps it back onto a
+sphere of the field's magnitude (soft iron and scale), up to a rotation.
+
+Two fits of the quadric a x^2 + b y^2 + c z^2 + 2f yz + 2g xz + 2h xy + 2p x + 2q y + 2r z
++ d = 0: the nine-parameter algebraic least-squares fit (d = -1), and the constrained fit
+of Li and Griffiths (2004) that always returns an ellipsoid (4J - I^2 = 1).
+
+Coverage gate: samples are counted in the eight octants around the running centroid; a
+fit is attempted only when every octant has ``min_per_octant`` samples (progress = octants
+filled), because a fit from one side of the ellipsoid is not determined.
+
+Ref: Q. Li and J. G. Griffiths, "Least squares ellipsoid specific fitting", Geometric
+     Modeling and Processing 2004, pp. 335-340.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+__all__ = ["Coverage", "octant_coverage", "EllipsoidResult", "fit_ellipsoid"]
+
+
+@dataclass
+class Coverage:
+    counts: np.ndarray          # samples per octant (index = 4 sx + 2 sy + sz, s = 1 if >=)
+    centroid: np.ndarray
+    min_per_octant: int
+
+    @property
+    def filled(self):
+        return int(np.sum(self.counts >= self.min_per_octant))
+
+    @property
+    def complete(self):
+        return self.filled == 8
+
+    def report(self):
+        return {"octants_filled": self.filled, "counts": self.counts.tolist(),
+                "min_per_octant": self.min_per_octant,
+                "centroid": self.centroid.tolist()}
+
+
+def octant_coverage(b, *, min_per_octant=10):
+    """Samples per octant around the running centroid (each sample is placed against the
+    centroid of the samples before it, as a logger would count during a flight)."""
+    b = np.asarray(b, dtype=float)
+    running = np.cumsum(b, axis=0) / np.arange(1, len(b) + 1)[:, None]
+    reference = np.vstack([b[:1], running[:-1]])
+    signs = (b >= reference).astype(int)
+    octant = 4 * signs[:, 0] + 2 * signs[:, 1] + signs[:, 2]
+    return Coverage(counts=np.bincount(octant, minlength=8), centroid=running[-1],
+                    min_per_octant=min_per_octant)
+
+
+@dataclass
+class EllipsoidResult:
+    center: np.ndarray          # hard-iron offset, nT
+    W: np.ndarray               # symmetric: |W (b - center)| = field
+    radii: np.ndarray           # semi-axes, nT
+    rms: float                  # RMS of |W (b - center)| - field
+    success: bool
+    message: str
+    coverage: Coverage
+    method: str
+    warnings: list = field(default_factory=list)
+
+
+def _design(b):
+    x, y, z = b[:, 0], b[:, 1], b[:, 2]
+    return np.column_stack([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y,
+                            2 * x, 2 * y, 2 * z, np.ones_like(x)])
+
+
+def _algebraic(d):
+    v, *_ = np.linalg.lstsq(d[:, :9], np.ones(len(d)), rcond=None)
+    return np.append(v, -1.0)
+
+
+def _li_griffiths(d, k=4.0):
+    s = d.T @ d
+    s11, s12, s22 = s[:6, :6], s[:6, 6:], s[6:, 6:]
+    c1 = np.zeros((6, 6))
+    c1[:3, :3] = k / 2 - 1
+    np.fill_diagonal(c1[:3, :3], -1)
+    c1[3:, 3:] = -k * np.eye(3)
+    reduced = s11 - s12 @ np.linalg.solve(s22, s12.T)
+    values, vectors = np.linalg.eig(np.linalg.solve(c1, reduced))
+    values, vectors = values.real, vectors.real
+    v1 = vectors[:, int(np.argmax(values))]
+    v2 = -np.linalg.solve(s22, s12.T @ v1)
+    return np.concatenate([v1, v2])
+
+
+def _to_geometry(v, field_nt):
+    a, b_, c, f, g, h, p, q, r, dd = v
+    quad = np.array([[a, h, g], [h, b_, f], [g, f, c]])
+    lin = np.array([p, q, r])
+    center = -np.linalg.solve(quad, lin)
+    scale = center @ quad @ center - dd
+    m = quad / scale
+    values, vectors = np.linalg.eigh(m)
+    if np.all(values < 0):                     # the quadric's overall sign is free
+        values = -values
+    if np.any(values <= 0):
+        return center, None, None
+    w = field_nt * (vectors * np.sqrt(values)) @ vectors.T
+    return center, w, 1.0 / np.sqrt(values)
+
+
+def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate=True):
+    """Fit the samples' ellipsoid; ``field_nt`` is the field's magnitude (the sphere's
+    radius after calibration). With ``gate``, an incomplete octant coverage is refused
+    (``success`` False, the coverage in the result) instead of fitted."""
+    b = np.asarray(b, dtype=float)
+    if b.ndim != 2 or b.shape[1] != 3 or len(b) < 10:
+        raise ValueError(f"Samples must be an (N, 3) array with N >= 10, not shape {b.shape}")
+    if not np.all(np.isfinite(b)):
+        raise ValueError("Samples must be finite (found NaN or infinity)")
+    if method not in ("algebraic", "constrained"):
+        raise ValueError(f"Method must be 'algebraic' or 'constrained', not {method!r}")
+    coverage = octant_coverage(b, min_per_octant=min_per_octant)
+    nan3 = np.full(3, np.nan)
+    if gate and not coverage.complete:
+        return EllipsoidResult(center=nan3, W=np.full((3, 3), np.nan), radii=nan3,
+                               rms=np.nan, success=False,
+                               message=f"coverage: {coverage.filled} of 8 octants have "
+                                       f"{min_per_octant} samples",
+                               coverage=coverage, method=method)
+    # Normalise for conditioning; undo afterwards.
+    mean = b.mean(axis=0)
+    spread = float(np.sqrt(np.mean(np.sum((b - mean) ** 2, axis=1))))
+    unit = (b - mean) / spread
+    d = _design(unit)
+    v = _algebraic(d) if method == "algebraic" else _li_griffiths(d)
+    center_u, w_u, _ = _to_geometry(v, 1.0)
+    if w_u is None:
+        return EllipsoidResult(center=nan3, W=np.full((3, 3), np.nan), radii=nan3,
+                               rms=np.nan, success=False,
+                               message="the fitted quadric is not an ellipsoid; use "
+                                       "method='constrained'",
+                               coverage=coverage, method=method)
+    center = mean + spread * center_u
+    w = field_nt * w_u / spread
+    calibrated = np.linalg.norm((b - center) @ w.T, axis=1)
+    radii = field_nt / np.linalg.eigvalsh(w)
+    return EllipsoidResult(center=center, W=w, radii=np.sort(radii),
+                           rms=float(np.sqrt(np.mean((calibrated - field_nt) ** 2))),
+                           success=True, message="fitted", coverage=coverage, method=method)
