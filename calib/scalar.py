@@ -32,6 +32,9 @@ PARAMETERS = ("k11", "k12", "k13", "k22", "k23", "k33", "c1", "c2", "c3")
 DIAGONAL_RANGE = (0.5, 2.0)
 OFF_DIAGONAL = 0.5
 OFFSET_FRACTION = 0.5
+#: Scaled condition number above which the coverage is reported as not determining the
+#: parameters.
+POORLY_DETERMINED = 1e6
 
 
 @dataclass
@@ -170,17 +173,25 @@ def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300
                       DIAGONAL_RANGE[1] * scale, OFF_DIAGONAL * scale,
                       DIAGONAL_RANGE[1] * scale, reach, reach, reach])
     nit = 0
+    identity = np.array([scale, 0, 0, scale, 0, scale, 0, 0, 0], dtype=float)
+    starts = [identity]
     if method == "pso":
         cost_fn = _pso.cost_numba if kernel == "numba" else _pso.cost_numpy
-        start, _, nit, _ = _pso.pso(lambda x: cost_fn(x, b, r), lower, upper,
-                                    particles=particles, iterations=iterations, seed=seed)
-    else:
-        start = np.array([scale, 0, 0, scale, 0, scale, 0, 0, 0], dtype=float)
-    x, cost, lm_it, e, j = _lm(start, b, r, lower, upper)
+        best, _, nit, _ = _pso.pso(lambda x: cost_fn(x, b, r), lower, upper,
+                                   particles=particles, iterations=iterations, seed=seed)
+        starts.insert(0, best)
+    # Polish every start and keep the best: a swarm can settle against the box in a
+    # poorly determined direction, where the identity start walks straight to the minimum.
+    polished = [_lm(start, b, r, lower, upper) for start in starts]
+    x, cost, lm_it, e, j = min(polished, key=lambda p: p[1])
     nit += lm_it
 
     a = j.T @ j
-    condition = float(np.linalg.cond(a))
+    # Conditioning with the parameters scaled to unit columns (K is ~1, c is ~1e4 nT).
+    d = np.sqrt(np.diag(a))
+    scaled = a / np.outer(d, d)
+    values, vectors = np.linalg.eigh(scaled)
+    condition = float(values[-1] / max(values[0], 1e-300))
     dof = max(b.shape[0] - len(PARAMETERS), 1)
     warnings = []
     try:
@@ -188,9 +199,12 @@ def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300
         uncertainties = np.sqrt(np.clip(np.diag(covariance), 0, None))
     except np.linalg.LinAlgError:
         uncertainties = np.full(len(PARAMETERS), np.inf)
-    if not np.isfinite(condition) or condition > 1e12:
-        warnings.append("the attitude coverage does not determine all nine parameters "
-                        f"(condition number {condition:.3g})")
+    if not np.isfinite(condition) or condition > POORLY_DETERMINED:
+        weak = vectors[:, 0]
+        names = [PARAMETERS[i] for i in np.argsort(-np.abs(weak))[:2]]
+        warnings.append("the attitude coverage hardly determines "
+                        f"{' against '.join(names)} (scaled condition number "
+                        f"{condition:.3g}); their uncertainties say how much")
     at_bound = [name for name, v, lo, hi in zip(PARAMETERS, x, lower, upper)
                 if np.isclose(v, lo) or np.isclose(v, hi)]
     if at_bound:
