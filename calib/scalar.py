@@ -143,7 +143,7 @@ def _check(b, r):
 
 
 def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300,
-                     kernel="numba"):
+                     kernel="numba", pso_samples=2000):
     """Fit K and c so that |K b_i - c| matches the reference r_i.
 
     Parameters
@@ -158,6 +158,9 @@ def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300
         PSO settings (the swarm is seeded: the same call gives the same result).
     kernel : "numba" or "numpy"
         Which twin evaluates the swarm's cost.
+    pso_samples : int
+        The swarm searches on at most this many samples, evenly spaced (the LM polish uses
+        them all): a long flight's global search costs no more than a short one's.
     """
     b, r = _check(b, r)
     if method not in ("pso", "lm"):
@@ -177,7 +180,9 @@ def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300
     starts = [identity]
     if method == "pso":
         cost_fn = _pso.cost_numba if kernel == "numba" else _pso.cost_numpy
-        best, _, nit, _ = _pso.pso(lambda x: cost_fn(x, b, r), lower, upper,
+        step = max(1, b.shape[0] // pso_samples)
+        b_s, r_s = b[::step], r[::step]
+        best, _, nit, _ = _pso.pso(lambda x: cost_fn(x, b_s, r_s), lower, upper,
                                    particles=particles, iterations=iterations, seed=seed)
         starts.insert(0, best)
     # Polish every start and keep the best: a swarm can settle against the box in a
