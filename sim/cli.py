@@ -161,6 +161,42 @@ def _cmd_demo(args):
         raise CliError("the gateware and the reference filter disagree")
 
 
+def _reference_arg(text):
+    if text in ("cesium", "igrf"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"reference must be cesium, igrf or a total field in nT, not {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"a reference field must be positive, not {text!r}")
+    return value
+
+
+def _cmd_calibrate(args):
+    from ..calib.card import CardError
+    from ..calib.pipeline import CalibrationError, calibrate_card, write_report
+    if not Path(args.card).exists():
+        raise CliError(f"{args.card}: no such file")
+    print(f"[1/3] reading {args.card}", file=sys.stderr)
+    try:
+        run = calibrate_card(args.card, ref=args.ref, method=args.method, seed=args.seed)
+    except (CardError, CalibrationError) as error:
+        raise CliError(str(error)) from None
+    print(f"[2/3] {run.log_name}: {len(run.b)} samples calibrated ({run.method}, "
+          f"reference {run.reference})", file=sys.stderr)
+    paths = write_report(run, args.out)
+    summary = run.summary()
+    print(f"[3/3] report: {paths['markdown']}\n")
+    rows = [["total-field RMS (nT)", f"{summary['rms_before_nT']:.2f}",
+             f"{summary['rms_after_nT']:.2f}"]]
+    print(_table(["", "before", "after"], rows))
+    for warning in getattr(run.result, "warnings", []):
+        print(f"warning: {warning}")
+    print(f"parameters: {paths['json']}")
+
+
 def _parser():
     from ..hw.frontend import DEFAULT_CHANNELS
     from .frontend_run import BACKENDS
@@ -196,6 +232,21 @@ def _parser():
     regmap.add_argument("-o", "--output", default="-",
                         help="output file (default: standard output)")
     regmap.set_defaults(func=_cmd_hdl_regmap)
+
+    calibrate = commands.add_parser(
+        "calibrate", help="calibrate the magnetometer from a card image or log file")
+    calibrate.add_argument("card", help="raw card image, FAT32 partition image, or a "
+                                        "plain LOG*.TXT")
+    calibrate.add_argument("--ref", type=_reference_arg, default="cesium",
+                           help="reference total field: cesium, igrf, or a value in nT "
+                                "(default: cesium)")
+    calibrate.add_argument("--method", choices=("pso", "lm", "ellipsoid"), default="pso",
+                           help="PSO then LM, LM alone, or an ellipsoid fit "
+                                "(default: %(default)s)")
+    calibrate.add_argument("--seed", type=int, default=0, help="PSO seed (default: 0)")
+    calibrate.add_argument("--out", default="build/calibration",
+                           help="report folder (default: %(default)s)")
+    calibrate.set_defaults(func=_cmd_calibrate)
 
     demo = commands.add_parser(
         "demo", help="push the built-in demo flight's serial streams through the front end")

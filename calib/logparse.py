@@ -1,0 +1,957 @@
+"""Log parser: the text of a ``LOGnnnnn.TXT`` → per-instrument arrays on one time base.
+
+The log holds the kept ``$``-frames verbatim in arrival order (``shared/DESIGN.md``,
+"Formats"): magnetometer ``$PMAG1,SSSSS,±XXXXX.X,±YYYYY.Y,±ZZZZZ.Z*hh``, cesium
+``$ 49895.131,1249`` / ``$149895.131,0001``, and NMEA GGA, ZDA and VTG of any talker. Line
+ends are CR LF or a bare LF. :func:`parse_log` reads every line, never raises on content,
+and returns a :class:`ParsedLog`; :func:`to_arrays` gives what calibration needs.
+
+Lines
+-----
+Lines are numbered from 1, as a text editor numbers them. A line that is not a good frame
+goes to :attr:`ParsedLog.bad` as ``(line_number, reason)`` with one of the reasons of
+:data:`BAD_REASONS`:
+
+``truncated``
+    the last line of the file has no line end (a cut write), or a ``$`` inside a line cut the
+    frame before it short (the part before the last ``$`` is reported, the rest is parsed);
+``bad_byte``
+    a byte outside printable ASCII 0x20-0x7E (non-ASCII, NUL, a stray CR);
+``unknown_sentence``
+    not one of the three frame forms (no ``$``, ``$hello``, ``$PMAG2``, ...);
+``checksum``
+    ``$PMAG1`` or NMEA without a final ``*hh``, or with a wrong XOR;
+``field_count``
+    the wrong number of comma-separated fields for the sentence;
+``number``
+    a field that does not parse or is out of range (time ``246000``, month 13, hemisphere
+    ``X``).
+
+Well-formed NMEA sentences with a good checksum that the logger would have dropped (RMC,
+GSA, GSV, proprietary ``$P...``) are not bad: they are counted in ``report.ignored`` and
+listed in :attr:`ParsedLog.ignored`. Blank lines are counted and skipped. Empty NMEA fields
+(a receiver without a fix) give NaN (floats) or -1 (integers), not errors.
+
+Time alignment
+--------------
+The log has no timestamps of its own; times come from GPS. All times ``t`` are seconds
+since 00:00:00 UTC of :attr:`ParsedLog.date`, the UTC date at the first anchor (taken from
+ZDA); without ZDA the date is ``None`` and ``t`` counts from midnight of that unknown day.
+
+1. **Anchors.** Every GGA with a fix (quality 1-9) and a time of day is an anchor. Its time
+   of day is unrolled over midnight (a step back of more than 12 h adds a day), and the
+   calendar day comes from the first ZDA with a date: it gives the day of the anchor nearest
+   to it in the log, hence of the first anchor. Anchors whose time does not increase are
+   left out. A GGA line arrives some time after its epoch (receiver
+   latency plus 9600 baud transmission); ``gps_latency`` (default 0) says how long, and the
+   anchor's line is placed at ``epoch + gps_latency``.
+2. **Lines between anchors** (cesium, ZDA, VTG): the time of a line is interpolated
+   linearly in its line number between the surrounding anchors: the lines that arrived
+   between two GGAs are spread evenly between those two times. Before the first and after
+   the last anchor, times are extrapolated at the mean line rate of the whole log (lines
+   per second between the first and last anchor). These are arrival times; the GPS burst
+   after each GGA (several long lines within a few tenths of a second) skews the even
+   spread, so expect errors up to about 0.2 s.
+3. **Magnetometer**: its samples are timed by their own sequence numbers, ``t = t0 +
+   seq / rate``, so that bursts in the arrival order do not distort time. For each anchor,
+   the magnetometer lines just before and just after the GGA line bracket its time: the
+   unwrapped sequence number "at" the anchor lies between theirs, and their mean is taken.
+   A straight line ``anchor time = t0 + seq_mid / rate`` is fitted to these pairs: first
+   robustly (Theil-Sen: the median of the slopes between all pairs of brackets, then the
+   median intercept), then by least squares weighted by 1 / bracket width², leaving out
+   anchors further from the line than their bracket allows, until nothing changes. One
+   bracket is only good to ± half a sample period, but the sensor and GPS clocks are not
+   locked, so the phase between them moves and the fit averages the brackets down (at
+   20 Hz: about 10 ms over 30 s of log, 2 ms over two minutes; clocks that stayed locked
+   would leave ± half a period). These too are arrival times. One rate holds for the whole
+   log: a sensor clock that changes its rate during the flight, or a sensor restart, shows
+   as rejected anchors and a large fit residual in the report. With fewer than two usable
+   brackets, or more rejected than kept, the magnetometer falls back to step 2; so does
+   any sample whose sequence time is more than 2 s from its line time (plus 10 % of the
+   time by which it lies beyond the first or last anchor): the minority side of a restart.
+4. **No GPS**: with fewer than two anchors every ``t`` is NaN and the report says so.
+
+GGA records keep their own epoch (``gga.t``): the anchor's time without ``gps_latency``, or
+for a GGA that is no anchor, its line time minus ``gps_latency``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "BAD_REASONS",
+    "SEQ_MODULUS",
+    "MagData",
+    "CesiumData",
+    "GgaData",
+    "ZdaData",
+    "VtgData",
+    "LogReport",
+    "ParsedLog",
+    "CalibrationArrays",
+    "parse_log",
+    "to_arrays",
+]
+
+# --- reasons ------------------------------------------------------------------------------
+
+TRUNCATED = "truncated"
+BAD_BYTE = "bad_byte"
+UNKNOWN_SENTENCE = "unknown_sentence"
+CHECKSUM = "checksum"
+FIELD_COUNT = "field_count"
+NUMBER = "number"
+#: Every reason a line can be bad for, in the order they are checked.
+BAD_REASONS = (TRUNCATED, BAD_BYTE, UNKNOWN_SENTENCE, CHECKSUM, FIELD_COUNT, NUMBER)
+
+# --- formats ------------------------------------------------------------------------------
+# Ref: shared/DESIGN.md "Formats"; NMEA 0183 v4.11 §5.2 (sentence, checksum), §6.3 (GGA, VTG,
+# ZDA fields); Geometrics G-882 manual, RS-232 output.
+
+#: The magnetometer's sequence counter runs 00000..99999 and wraps.
+SEQ_MODULUS = 100_000
+_PMAG_ADDRESS = "PMAG1"
+_PMAG_FIELDS = 5  # PMAG1, seq, x, y, z
+_CESIUM_FIELD_RE = re.compile(r"[ 1]\d{5}\.\d{3}\Z")
+_CESIUM_SIGNAL_RE = re.compile(r"\d{4}\Z")
+_CESIUM_HIGH_RANGE_NT = 100_000.0
+_ADDRESS_RE = re.compile(r"\$(?:PMAG1|[A-Z]{5}),")
+_NMEA_KEPT = ("GGA", "ZDA", "VTG")
+_CHECKSUM_RE = re.compile(r"\*([0-9A-Fa-f]{2})\Z")
+_GGA_FIELDS = (15,)  # address + 14 data fields
+_ZDA_FIELDS = (7,)  # address, time, day, month, year, zone hours, zone minutes
+_VTG_FIELDS = (9, 10)  # address + 8 data fields, NMEA 2.3 and later add the mode
+_BAD_BYTE_RE = re.compile(rb"[^\x20-\x7e]")
+_DECIMAL_RE = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)\Z")
+_UINT_RE = re.compile(r"\d+\Z")
+_TIME_RE = re.compile(r"(\d{2})(\d{2})(\d{2}(?:\.\d*)?)\Z")
+_LAT_RE = re.compile(r"(\d{2})(\d{2}(?:\.\d*)?)\Z")
+_LON_RE = re.compile(r"(\d{3})(\d{2}(?:\.\d*)?)\Z")
+_HOURS_PER_DAY = 24
+_MINUTES_PER_HOUR = 60
+_SECONDS_PER_MINUTE = 60
+_MAX_SECOND = 61  # exclusive; a leap second is 60
+_SECONDS_PER_DAY = 86_400.0
+_HALF_DAY = _SECONDS_PER_DAY / 2
+_LAT_LIMIT = 90.0
+_LON_LIMIT = 180.0
+_KNOT_M_S = 1852.0 / 3600.0
+_KMH_M_S = 1000.0 / 3600.0
+_MISSING_INT = -1
+
+# --- alignment ----------------------------------------------------------------------------
+
+#: Fit iterations of the magnetometer rate before giving up on convergence.
+_FIT_ITERATIONS = 10
+#: Brackets used for the robust start of the magnetometer fit (all pairs of them).
+_THEIL_SEN_POINTS = 600
+#: Residual allowed in the first pass of the fit, in bracket widths (later passes: one).
+_FIRST_PASS_WIDTHS = 4.0
+#: A report message when more than this share of the magnetometer brackets are rejected.
+_OUTLIER_WARNING_SHARE = 0.1
+#: Seconds a magnetometer sample's sequence time may differ from its line time (which is good
+#: to a few tenths of a second) before the line time is taken instead.
+_MAX_SEQUENCE_LINE_DISAGREEMENT = 2.0
+#: ... plus this share of the time by which the line time lies beyond the first or last anchor.
+_DISAGREEMENT_GROWTH = 0.1
+#: Default interpolation gap in :func:`to_arrays`, in median sample intervals of the source.
+_GAP_INTERVALS = 5.0
+
+
+class _BadLine(Exception):
+    def __init__(self, reason: str, detail: str):
+        super().__init__(detail)
+        self.reason = reason
+        self.detail = detail
+
+
+# --- result types -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class MagData:
+    """``$PMAG1`` samples in log order."""
+
+    line: np.ndarray  #: int64 line numbers (from 1)
+    seq: np.ndarray  #: int64 sequence numbers, unwrapped: ``seq % SEQ_MODULUS`` is the sent value
+    b: np.ndarray  #: float64 (N, 3) field in nT
+    t: np.ndarray  #: float64 seconds (see the module docstring), NaN without GPS
+    seq_gaps: int  #: places where the sequence skips forward (samples lost)
+    seq_missing: int  #: samples lost in those gaps
+    seq_repeats: int  #: places where a sequence number repeats
+
+    def __len__(self) -> int:
+        return len(self.line)
+
+
+@dataclass(frozen=True, eq=False)
+class CesiumData:
+    """Cesium readings in log order."""
+
+    line: np.ndarray  #: int64 line numbers
+    field: np.ndarray  #: float64 total field in nT
+    signal: np.ndarray  #: int64 signal level 0..9999
+    t: np.ndarray  #: float64 arrival times
+
+    def __len__(self) -> int:
+        return len(self.line)
+
+
+@dataclass(frozen=True, eq=False)
+class GgaData:
+    """GGA fixes in log order; empty fields are NaN (floats) or -1 (integers)."""
+
+    line: np.ndarray  #: int64
+    time_of_day: np.ndarray  #: float64 UTC seconds since midnight as sent
+    lat: np.ndarray  #: float64 degrees, north positive
+    lon: np.ndarray  #: float64 degrees, east positive
+    quality: np.ndarray  #: int64 fix quality (0 = no fix)
+    satellites: np.ndarray  #: int64
+    hdop: np.ndarray  #: float64
+    altitude: np.ndarray  #: float64 m above mean sea level
+    t: np.ndarray  #: float64 the fix's epoch on the log's time base
+
+    def __len__(self) -> int:
+        return len(self.line)
+
+
+@dataclass(frozen=True, eq=False)
+class ZdaData:
+    """ZDA date and time sentences in log order."""
+
+    line: np.ndarray  #: int64
+    datetime: list  #: naive UTC :class:`datetime.datetime`, or None for empty fields
+    t: np.ndarray  #: float64 arrival times
+
+    def __len__(self) -> int:
+        return len(self.line)
+
+
+@dataclass(frozen=True, eq=False)
+class VtgData:
+    """VTG course and speed in log order."""
+
+    line: np.ndarray  #: int64
+    course: np.ndarray  #: float64 degrees true
+    speed: np.ndarray  #: float64 m/s (from the knots field, else the km/h field)
+    t: np.ndarray  #: float64 arrival times
+
+    def __len__(self) -> int:
+        return len(self.line)
+
+
+@dataclass
+class LogReport:
+    """What was in the log and how well it could be timed."""
+
+    name: str
+    lines: int = 0  #: lines, the truncated last one included
+    bytes: int = 0
+    line_endings: dict = field(default_factory=lambda: {"CRLF": 0, "LF": 0})
+    blank_lines: int = 0
+    counts: dict = field(default_factory=dict)  #: records per channel: mag, cesium, gga, zda, vtg
+    bad: dict = field(default_factory=dict)  #: bad lines per reason (every reason present)
+    ignored: dict = field(default_factory=dict)  #: well-formed sentences not used, per address
+    seq_gaps: int = 0
+    seq_missing: int = 0
+    seq_repeats: int = 0
+    time_aligned: bool = False  #: False: no (or one) GPS anchor, every time is NaN
+    anchors: int = 0  #: GGA anchors used
+    anchors_not_increasing: int = 0  #: GGA times left out because they did not increase
+    midnight_rollovers: int = 0
+    line_rate_hz: float = math.nan  #: lines per second between the first and last anchor
+    mag_timing: str = "none"  #: "sequence", "line" (fallback) or "none"
+    mag_rate_hz: float = math.nan  #: the magnetometer's own sample rate, estimated
+    mag_brackets: int = 0  #: anchors bracketed by magnetometer lines and used in the fit
+    mag_outliers: int = 0  #: brackets left out of the fit
+    #: RMS residual (s) of the used bracket midpoints: about period / sqrt(12) when sequence
+    #: numbers and arrival order agree, more when the sensor clock wanders.
+    mag_fit_rms_s: float = math.nan
+    #: Samples timed by line position although the fit succeeded (sequence time more than
+    #: 2 s from the line time: the minority side of a sensor restart)
+    mag_line_timed: int = 0
+    messages: list = field(default_factory=list)  #: "name:line: reason: detail" and notes
+
+    def __str__(self) -> str:
+        counts = ", ".join(f"{key} {value}" for key, value in self.counts.items())
+        bad = ", ".join(f"{key} {value}" for key, value in self.bad.items() if value) or "none"
+        ignored = (
+            ", ".join(f"{key} {value}" for key, value in sorted(self.ignored.items())) or "none"
+        )
+        lines = [
+            f"{self.name}: {self.lines} lines, {self.bytes} bytes ({counts})",
+            f"  bad lines: {bad}; ignored: {ignored}; blank: {self.blank_lines}",
+            f"  magnetometer sequence: {self.seq_gaps} gaps, {self.seq_missing} samples missing, "
+            f"{self.seq_repeats} repeats",
+        ]
+        if not self.time_aligned:
+            lines.append(f"  time: not aligned ({self.anchors} GPS anchors), all times are NaN")
+        elif self.mag_timing == "sequence":
+            lines.append(
+                f"  time: {self.anchors} GGA anchors, {self.line_rate_hz:.2f} lines/s, "
+                f"magnetometer by sequence at {self.mag_rate_hz:.4f} Hz ({self.mag_outliers} of "
+                f"{self.mag_brackets + self.mag_outliers} brackets rejected, "
+                f"{self.mag_line_timed} samples by line)"
+            )
+        else:
+            lines.append(
+                f"  time: {self.anchors} GGA anchors, {self.line_rate_hz:.2f} lines/s, "
+                f"magnetometer by {self.mag_timing}"
+            )
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True, eq=False)
+class ParsedLog:
+    """The result of :func:`parse_log`."""
+
+    name: str
+    mag: MagData
+    cesium: CesiumData
+    gga: GgaData
+    zda: ZdaData
+    vtg: VtgData
+    bad: list  #: ``(line_number, reason)`` in line order
+    ignored: list  #: ``(line_number, address)`` of well-formed sentences not used
+    date: _dt.date | None  #: UTC date of the first anchor (from ZDA), or None
+    report: LogReport
+
+    @property
+    def epoch(self) -> _dt.datetime | None:
+        """00:00:00 UTC of :attr:`date` (aware), the zero of every ``t``; None without ZDA."""
+        if self.date is None:
+            return None
+        return _dt.datetime(
+            self.date.year, self.date.month, self.date.day, tzinfo=_dt.timezone.utc
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationArrays:
+    """Magnetometer samples with the references at their times (see :func:`to_arrays`)."""
+
+    t: np.ndarray  #: (N,) magnetometer times
+    b: np.ndarray  #: (N, 3) nT
+    seq: np.ndarray  #: (N,) unwrapped sequence numbers
+    line: np.ndarray  #: (N,) line numbers
+    cesium: np.ndarray  #: (N,) cesium total field at ``t``, NaN outside its span and gaps
+    lat: np.ndarray  #: (N,) degrees
+    lon: np.ndarray  #: (N,) degrees
+    alt: np.ndarray  #: (N,) m
+    date: _dt.date | None
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+# --- field parsers ------------------------------------------------------------------------
+
+
+def _float(text: str, what: str) -> float:
+    if not text:
+        return math.nan
+    if not _DECIMAL_RE.match(text):
+        raise _BadLine(NUMBER, f"{what} {text!r} is not a number")
+    return float(text)
+
+
+def _uint(text: str, what: str) -> int:
+    if not text:
+        return _MISSING_INT
+    if not _UINT_RE.match(text):
+        raise _BadLine(NUMBER, f"{what} {text!r} is not an unsigned integer")
+    return int(text)
+
+
+def _time_of_day(text: str) -> float:
+    if not text:
+        return math.nan
+    match = _TIME_RE.match(text)
+    if match is None:
+        raise _BadLine(NUMBER, f"time {text!r} is not hhmmss.ss")
+    hours, minutes, seconds = int(match[1]), int(match[2]), float(match[3])
+    if hours >= _HOURS_PER_DAY or minutes >= _MINUTES_PER_HOUR or seconds >= _MAX_SECOND:
+        raise _BadLine(NUMBER, f"time {text!r} is out of range")
+    return (hours * _MINUTES_PER_HOUR + minutes) * _SECONDS_PER_MINUTE + seconds
+
+
+def _angle(
+    text: str, hemisphere: str, pattern: re.Pattern, signs: str, limit: float, what: str
+) -> float:
+    if not text and not hemisphere:
+        return math.nan
+    match = pattern.match(text)
+    if match is None:
+        raise _BadLine(
+            NUMBER, f"{what} {text!r} is not {'dd' if limit == _LAT_LIMIT else 'ddd'}mm.mmmm"
+        )
+    degrees, minutes = int(match[1]), float(match[2])
+    value = degrees + minutes / _MINUTES_PER_HOUR
+    if minutes >= _MINUTES_PER_HOUR or value > limit:
+        raise _BadLine(NUMBER, f"{what} {text!r} is out of range")
+    if hemisphere == signs[0]:
+        return value
+    if hemisphere == signs[1]:
+        return -value
+    raise _BadLine(NUMBER, f"{what} hemisphere {hemisphere!r} is not {signs[0]} or {signs[1]}")
+
+
+def _check_count(fields: list[str], allowed: tuple[int, ...], what: str) -> None:
+    if len(fields) not in allowed:
+        wanted = " or ".join(str(n) for n in allowed)
+        raise _BadLine(FIELD_COUNT, f"{what} has {len(fields)} fields, not {wanted}")
+
+
+def _parse_pmag(payload: str) -> tuple[int, float, float, float]:
+    fields = payload.split(",")
+    _check_count(fields, (_PMAG_FIELDS,), "$PMAG1")
+    seq = _uint(fields[1], "sequence number")
+    if seq == _MISSING_INT or seq >= SEQ_MODULUS:
+        raise _BadLine(NUMBER, f"sequence number {fields[1]!r} is not 0..{SEQ_MODULUS - 1}")
+    values = [_float(text, f"field {axis}") for text, axis in zip(fields[2:], "xyz")]
+    for value, axis, text in zip(values, "xyz", fields[2:]):
+        if math.isnan(value):
+            raise _BadLine(NUMBER, f"field {axis} {text!r} is empty")
+    return seq, values[0], values[1], values[2]
+
+
+def _parse_cesium(body: str) -> tuple[float, int]:
+    fields = body.split(",")
+    _check_count(fields, (2,), "cesium line")
+    reading, signal = fields
+    if not _CESIUM_FIELD_RE.match(reading):
+        raise _BadLine(NUMBER, f"cesium field {reading!r} is not ' ddddd.ddd' or '1ddddd.ddd'")
+    if not _CESIUM_SIGNAL_RE.match(signal):
+        raise _BadLine(NUMBER, f"cesium signal {signal!r} is not four digits")
+    value = float(reading[1:]) + (_CESIUM_HIGH_RANGE_NT if reading[0] == "1" else 0.0)
+    return value, int(signal)
+
+
+def _parse_gga(fields: list[str]) -> tuple:
+    _check_count(fields, _GGA_FIELDS, "GGA")
+    tod = _time_of_day(fields[1])
+    lat = _angle(fields[2], fields[3], _LAT_RE, "NS", _LAT_LIMIT, "latitude")
+    lon = _angle(fields[4], fields[5], _LON_RE, "EW", _LON_LIMIT, "longitude")
+    quality = _uint(fields[6], "fix quality")
+    satellites = _uint(fields[7], "satellite count")
+    hdop = _float(fields[8], "HDOP")
+    altitude = _float(fields[9], "altitude")
+    return tod, lat, lon, quality, satellites, hdop, altitude
+
+
+def _parse_zda(fields: list[str]) -> _dt.datetime | None:
+    _check_count(fields, _ZDA_FIELDS, "ZDA")
+    tod = _time_of_day(fields[1])
+    day, month, year = (
+        _uint(text, what) for text, what in zip(fields[2:5], ("day", "month", "year"))
+    )
+    if math.isnan(tod) or _MISSING_INT in (day, month, year):
+        return None
+    try:
+        midnight = _dt.datetime(year, month, day)
+    except ValueError as error:
+        raise _BadLine(NUMBER, f"date {fields[2]},{fields[3]},{fields[4]}: {error}") from None
+    return midnight + _dt.timedelta(seconds=tod)
+
+
+def _parse_vtg(fields: list[str]) -> tuple[float, float]:
+    _check_count(fields, _VTG_FIELDS, "VTG")
+    course = _float(fields[1], "course")
+    knots = _float(fields[5], "speed in knots")
+    kmh = _float(fields[7], "speed in km/h")
+    speed = knots * _KNOT_M_S if not math.isnan(knots) else kmh * _KMH_M_S
+    return course, speed
+
+
+# --- the line reader ----------------------------------------------------------------------
+
+
+class _Reader:
+    """Reads the lines of one log into lists of records, bad lines and ignored sentences."""
+
+    def __init__(self, data: bytes, name: str):
+        self.data = data
+        self.name = name
+        self.report = LogReport(name=name, bytes=len(data))
+        self.bad: list[tuple[int, str]] = []
+        self.ignored: list[tuple[int, str]] = []
+        self.mag: list[tuple] = []
+        self.cesium: list[tuple] = []
+        self.gga: list[tuple] = []
+        self.zda: list[tuple] = []
+        self.vtg: list[tuple] = []
+        # prefix[i] is the XOR of data[:i]: the XOR of data[a:b] is prefix[a] ^ prefix[b].
+        prefix = np.zeros(len(data) + 1, dtype=np.uint8)
+        if data:
+            np.bitwise_xor.accumulate(np.frombuffer(data, dtype=np.uint8), out=prefix[1:])
+        self.prefix = prefix.tobytes()
+
+    def fail(self, line: int, reason: str, detail: str) -> None:
+        self.bad.append((line, reason))
+        self.report.messages.append(f"{self.name}:{line}: {reason}: {detail}")
+
+    def read(self) -> None:
+        pieces = self.data.split(b"\n")
+        self.report.lines = len(pieces) - (1 if pieces[-1] == b"" else 0)
+        offset = 0
+        last = len(pieces) - 1
+        for index, raw in enumerate(pieces):
+            number = index + 1
+            start = offset
+            offset += len(raw) + 1
+            if index == last:
+                if raw:
+                    self.fail(
+                        number, TRUNCATED, f"the last line has no line end ({len(raw)} bytes)"
+                    )
+                break
+            if raw.endswith(b"\r"):
+                raw = raw[:-1]
+                self.report.line_endings["CRLF"] += 1
+            else:
+                self.report.line_endings["LF"] += 1
+            self.read_line(number, start, raw)
+
+    def read_line(self, number: int, start: int, raw: bytes) -> None:
+        if not raw:
+            self.report.blank_lines += 1
+            return
+        bad_byte = _BAD_BYTE_RE.search(raw)
+        if bad_byte is not None:
+            byte = raw[bad_byte.start()]
+            self.fail(
+                number,
+                BAD_BYTE,
+                f"byte 0x{byte:02X} at column {bad_byte.start() + 1} "
+                "(only printable ASCII is allowed)",
+            )
+            return
+        text = raw.decode("ascii")
+        frame_start = text.rfind("$")
+        if frame_start < 0:
+            self.fail(number, UNKNOWN_SENTENCE, f"no '$' frame start in {_clip(text)!r}")
+            return
+        if frame_start > 0:
+            self.fail(
+                number,
+                TRUNCATED,
+                f"{_clip(text[:frame_start])!r} before the '$' at column {frame_start + 1} "
+                "is a cut frame",
+            )
+        try:
+            self.read_frame(number, start + frame_start, text[frame_start:])
+        except _BadLine as bad:
+            self.fail(number, bad.reason, bad.detail)
+
+    def checked_payload(self, frame: str, offset: int) -> str:
+        """The bytes between ``$`` and a final ``*hh`` whose XOR matches."""
+        match = _CHECKSUM_RE.search(frame)
+        if match is None:
+            raise _BadLine(CHECKSUM, "no '*hh' checksum at the end")
+        star = match.start()
+        sent = int(match[1], 16)
+        computed = self.prefix[offset + 1] ^ self.prefix[offset + star]
+        if sent != computed:
+            raise _BadLine(
+                CHECKSUM, f"checksum {match[1]} does not match the computed {computed:02X}"
+            )
+        return frame[1:star]
+
+    def read_frame(self, number: int, offset: int, frame: str) -> None:
+        first = frame[1:2]
+        if first == " " or first.isdigit():
+            self.cesium.append((number, *_parse_cesium(frame[1:])))
+            return
+        if not _ADDRESS_RE.match(frame):
+            raise _BadLine(
+                UNKNOWN_SENTENCE, f"{_clip(frame)!r} is no $PMAG1, NMEA or cesium frame"
+            )
+        payload = self.checked_payload(frame, offset)
+        address = frame[1:6]
+        if address == _PMAG_ADDRESS:
+            self.mag.append((number, *_parse_pmag(payload)))
+            return
+        sentence = address[2:]
+        if sentence not in _NMEA_KEPT:
+            self.ignored.append((number, address))
+            return
+        fields = payload.split(",")
+        if sentence == "GGA":
+            self.gga.append((number, *_parse_gga(fields)))
+        elif sentence == "ZDA":
+            self.zda.append((number, _parse_zda(fields)))
+        else:
+            self.vtg.append((number, *_parse_vtg(fields)))
+
+
+def _clip(text: str, limit: int = 40) -> str:
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def _column(rows: list[tuple], index: int, dtype) -> np.ndarray:
+    return np.array([row[index] for row in rows], dtype=dtype)
+
+
+# --- time alignment -----------------------------------------------------------------------
+
+
+@dataclass
+class _Anchors:
+    line: np.ndarray  # line numbers of the anchor GGAs
+    epoch: np.ndarray  # their epochs, seconds since midnight of `date`
+    gga_index: np.ndarray  # index into the GGA records
+    date: _dt.date | None
+    rollovers: int
+    not_increasing: int
+
+
+def _find_anchors(gga_line, tod, quality, zda_line, zda_datetimes) -> _Anchors:
+    usable = np.flatnonzero((quality >= 1) & np.isfinite(tod))
+    steps_back = np.diff(tod[usable]) < -_HALF_DAY  # past midnight
+    days = np.concatenate([np.zeros(min(len(usable), 1)), np.cumsum(steps_back)]).astype(np.int64)
+    epoch = tod[usable] + days * _SECONDS_PER_DAY
+    keep = []
+    latest = -math.inf
+    for position, value in enumerate(epoch):
+        if value > latest:
+            keep.append(position)
+            latest = value
+    keep = np.array(keep, dtype=np.int64)
+    index = usable[keep]
+    epoch = epoch[keep]
+    line = gga_line[index]
+    date = None
+    dated = [(zl, when) for zl, when in zip(zda_line, zda_datetimes) if when is not None]
+    if dated and len(line):
+        # The first dated ZDA gives the calendar day of the anchor nearest to it in the log
+        # (they are less than half a day apart), hence the day of the first anchor.
+        zl, when = dated[0]
+        nearest = int(np.argmin(np.abs(line - zl)))
+        zda_tod = (when - _dt.datetime(when.year, when.month, when.day)).total_seconds()
+        shift = round((zda_tod - epoch[nearest]) / _SECONDS_PER_DAY)
+        date = when.date() + _dt.timedelta(days=shift)
+    elif dated:
+        date = dated[0][1].date()
+    rollovers = int(days[keep][-1]) if len(keep) else 0
+    return _Anchors(line, epoch, index, date, rollovers, len(usable) - len(keep))
+
+
+def _line_times(position: np.ndarray, anchor_pos: np.ndarray, anchor_t: np.ndarray) -> np.ndarray:
+    """Times of lines at ``position``: linear between anchors, the mean rate outside."""
+    position = np.asarray(position, dtype=np.float64)
+    if len(anchor_pos) < 2:
+        return np.full(position.shape, math.nan)
+    seconds_per_line = (anchor_t[-1] - anchor_t[0]) / (anchor_pos[-1] - anchor_pos[0])
+    t = np.interp(position, anchor_pos, anchor_t)
+    before = position < anchor_pos[0]
+    after = position > anchor_pos[-1]
+    t[before] = anchor_t[0] - (anchor_pos[0] - position[before]) * seconds_per_line
+    t[after] = anchor_t[-1] + (position[after] - anchor_pos[-1]) * seconds_per_line
+    return t
+
+
+@dataclass
+class _MagFit:
+    t_ref: float  # time of sequence number s_ref
+    s_ref: float
+    period: float  # seconds per sample
+    used: int
+    outliers: int
+    rms: float  # RMS residual of the used brackets' midpoints
+
+    def times(self, seq: np.ndarray) -> np.ndarray:
+        return self.t_ref + (seq - self.s_ref) * self.period
+
+
+def _fit_mag(mag_line, seq, anchor_line, anchor_t) -> _MagFit | None:
+    """Fit ``anchor time = t_ref + (seq - s_ref) * period`` to the magnetometer brackets."""
+    after = np.searchsorted(mag_line, anchor_line, side="right")
+    inside = (after > 0) & (after < len(mag_line))
+    low, high = seq[after[inside] - 1].astype(np.float64), seq[after[inside]].astype(np.float64)
+    times = anchor_t[inside]
+    ok = high > low
+    low, high, times = low[ok], high[ok], times[ok]
+    if len(times) < 2:
+        return None
+    s_ref, t_ref = low[0], times[0]
+    mid = (low + high) / 2.0 - s_ref
+    times = times - t_ref
+    width = high - low
+    # Robust start (Theil-Sen): the median slope over all pairs of brackets (of at most
+    # _THEIL_SEN_POINTS of them, evenly spread), then the median intercept. Pairs within one
+    # stretch of good samples agree, so a restart or a burst does not move the medians.
+    pick = np.unique(
+        np.linspace(0, len(mid) - 1, min(len(mid), _THEIL_SEN_POINTS)).astype(np.int64)
+    )
+    first, second = np.triu_indices(len(pick), k=1)
+    d_seq = mid[pick[second]] - mid[pick[first]]
+    d_t = times[pick[second]] - times[pick[first]]
+    slopes = d_t[d_seq > 0] / d_seq[d_seq > 0]
+    if len(slopes) == 0:
+        return None
+    period = float(np.median(slopes))
+    offset = float(np.median(times - period * mid))
+    used = None
+    for iteration in range(_FIT_ITERATIONS):
+        # A bracket is good to ± half its width: keep those within a full width (at least one
+        # sample) of the line. The robust start is rougher, so the first pass allows more.
+        allowed = _FIRST_PASS_WIDTHS if iteration == 0 else 1.0
+        keep = np.abs(times - offset - period * mid) <= allowed * np.maximum(width, 1.0) * abs(
+            period
+        )
+        if len(np.unique(mid[keep])) < 2:
+            return None  # the brackets disagree with any one line
+        if used is not None and np.array_equal(keep, used):
+            break
+        used = keep
+        sqrt_w = 1.0 / width[used]
+        design = np.column_stack([np.ones(np.count_nonzero(used)), mid[used]]) * sqrt_w[:, None]
+        (offset, period), *_ = np.linalg.lstsq(design, times[used] * sqrt_w, rcond=None)
+        offset, period = float(offset), float(period)
+    used_count = int(np.count_nonzero(used))
+    if not period > 0 or used_count < len(used) - used_count:
+        return None  # most brackets disagree with the line: no rate to trust
+    residual = times[used] - (offset + period * mid[used])
+    rms = float(np.sqrt(np.mean(residual**2)))
+    return _MagFit(t_ref + offset, s_ref, period, used_count, len(used) - used_count, rms)
+
+
+def _unwrap_seq(raw: np.ndarray) -> tuple[np.ndarray, int, int, int]:
+    if len(raw) == 0:
+        return raw.astype(np.int64), 0, 0, 0
+    step = np.diff(raw) % SEQ_MODULUS
+    seq = raw[0] + np.concatenate([[0], np.cumsum(step)]).astype(np.int64)
+    gaps = step > 1
+    return (
+        seq,
+        int(np.count_nonzero(gaps)),
+        int(np.sum(step[gaps] - 1)),
+        int(np.count_nonzero(step == 0)),
+    )
+
+
+# --- public API ---------------------------------------------------------------------------
+
+
+def parse_log(data: bytes, *, name: str = "log", gps_latency: float = 0.0) -> ParsedLog:
+    """Parse a log file's bytes into per-instrument arrays with times (see the module doc).
+
+    ``name`` prefixes the report's messages (``"LOG00003.TXT:17: checksum: ..."``);
+    ``gps_latency`` is the time in seconds from a GGA's epoch to the arrival of its line.
+    Malformed lines never raise: they are listed in ``bad`` and counted in ``report``.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise TypeError(f"Log data must be bytes, not {type(data).__name__}")
+    if not isinstance(name, str):
+        raise TypeError(f"Log name must be a str, not {type(name).__name__}")
+    if (
+        isinstance(gps_latency, bool)
+        or not isinstance(gps_latency, (int, float))
+        or not math.isfinite(gps_latency)
+        or gps_latency < 0
+    ):
+        raise ValueError(
+            f"GPS latency must be a finite number of seconds >= 0, not {gps_latency!r}"
+        )
+    reader = _Reader(bytes(data), name)
+    reader.read()
+    report = reader.report
+
+    mag_line = _column(reader.mag, 0, np.int64)
+    seq, report.seq_gaps, report.seq_missing, report.seq_repeats = _unwrap_seq(
+        _column(reader.mag, 1, np.int64)
+    )
+    b = np.array([row[2:] for row in reader.mag], dtype=np.float64).reshape(-1, 3)
+    cs_line = _column(reader.cesium, 0, np.int64)
+    gga_line = _column(reader.gga, 0, np.int64)
+    tod = _column(reader.gga, 1, np.float64)
+    quality = _column(reader.gga, 4, np.int64)
+    zda_line = _column(reader.zda, 0, np.int64)
+    zda_datetimes = [row[1] for row in reader.zda]
+    vtg_line = _column(reader.vtg, 0, np.int64)
+
+    anchors = _find_anchors(gga_line, tod, quality, zda_line, zda_datetimes)
+    anchor_t = anchors.epoch + float(gps_latency)
+    anchor_pos = anchors.line.astype(np.float64)
+    report.anchors = len(anchors.line)
+    report.anchors_not_increasing = anchors.not_increasing
+    report.midnight_rollovers = anchors.rollovers
+    report.time_aligned = report.anchors >= 2
+    if report.anchors == 0:
+        report.messages.append(f"{name}: no GGA with a fix and a time: all times are NaN")
+    elif report.anchors == 1:
+        report.messages.append(
+            f"{name}: only one GGA with a fix and a time (two are needed): all times are NaN"
+        )
+    else:
+        report.line_rate_hz = float(
+            (anchor_pos[-1] - anchor_pos[0]) / (anchor_t[-1] - anchor_t[0])
+        )
+    if report.time_aligned and anchors.date is None:
+        report.messages.append(
+            f"{name}: no ZDA: the date is unknown, "
+            "times count from midnight of the first fix's day"
+        )
+    if anchors.not_increasing:
+        report.messages.append(
+            f"{name}: {anchors.not_increasing} GGA times did not increase and were left out"
+        )
+
+    mag_t = _line_times(mag_line, anchor_pos, anchor_t)
+    if report.time_aligned and len(mag_line):
+        fit = _fit_mag(mag_line, seq, anchors.line, anchor_t)
+        if fit is None:
+            report.mag_timing = "line"
+            report.messages.append(
+                f"{name}: GGA anchors and magnetometer sequence numbers do not agree on a "
+                "sample rate (too few anchors between magnetometer lines, or most disagree): "
+                "magnetometer timed by line position"
+            )
+        else:
+            line_t = mag_t
+            mag_t = fit.times(seq)
+            # A sample whose sequence time is far from its line time is not on the fitted line
+            # (a sensor restart): it keeps its line time. Line times extrapolated beyond the
+            # anchors get less certain with distance, so the limit grows there.
+            beyond = np.maximum(0.0, np.maximum(anchor_t[0] - line_t, line_t - anchor_t[-1]))
+            limit = _MAX_SEQUENCE_LINE_DISAGREEMENT + _DISAGREEMENT_GROWTH * beyond
+            astray = np.abs(mag_t - line_t) > limit
+            mag_t[astray] = line_t[astray]
+            report.mag_line_timed = int(np.count_nonzero(astray))
+            if report.mag_line_timed:
+                report.messages.append(
+                    f"{name}: {report.mag_line_timed} magnetometer samples are more than "
+                    f"{_MAX_SEQUENCE_LINE_DISAGREEMENT:g} s from where their lines arrived "
+                    "(sensor restart?): timed by line position instead"
+                )
+            report.mag_timing = "sequence"
+            report.mag_rate_hz = 1.0 / fit.period
+            report.mag_brackets = fit.used
+            report.mag_outliers = fit.outliers
+            report.mag_fit_rms_s = fit.rms
+            if fit.outliers > _OUTLIER_WARNING_SHARE * (fit.used + fit.outliers):
+                report.messages.append(
+                    f"{name}: {fit.outliers} of {fit.used + fit.outliers} GGA anchors "
+                    "disagree with the magnetometer sequence (sensor restart or clock change?)"
+                )
+
+    gga_t = _line_times(gga_line, anchor_pos, anchor_t) - float(gps_latency)
+    gga_t[anchors.gga_index] = anchors.epoch
+    if not report.time_aligned:
+        gga_t[:] = math.nan
+
+    mag = MagData(mag_line, seq, b, mag_t, report.seq_gaps, report.seq_missing, report.seq_repeats)
+    cesium = CesiumData(
+        cs_line,
+        _column(reader.cesium, 1, np.float64),
+        _column(reader.cesium, 2, np.int64),
+        _line_times(cs_line, anchor_pos, anchor_t),
+    )
+    gga = GgaData(
+        gga_line,
+        tod,
+        _column(reader.gga, 2, np.float64),
+        _column(reader.gga, 3, np.float64),
+        quality,
+        _column(reader.gga, 5, np.int64),
+        _column(reader.gga, 6, np.float64),
+        _column(reader.gga, 7, np.float64),
+        gga_t,
+    )
+    zda = ZdaData(zda_line, zda_datetimes, _line_times(zda_line, anchor_pos, anchor_t))
+    vtg = VtgData(
+        vtg_line,
+        _column(reader.vtg, 1, np.float64),
+        _column(reader.vtg, 2, np.float64),
+        _line_times(vtg_line, anchor_pos, anchor_t),
+    )
+    report.counts = {
+        "mag": len(mag),
+        "cesium": len(cesium),
+        "gga": len(gga),
+        "zda": len(zda),
+        "vtg": len(vtg),
+    }
+    found = Counter(reason for _, reason in reader.bad)
+    report.bad = {reason: found.get(reason, 0) for reason in BAD_REASONS}
+    report.ignored = dict(Counter(address for _, address in reader.ignored))
+    if not data:
+        report.messages.insert(0, f"{name}: the log is empty")
+    return ParsedLog(
+        name=name,
+        mag=mag,
+        cesium=cesium,
+        gga=gga,
+        zda=zda,
+        vtg=vtg,
+        bad=reader.bad,
+        ignored=reader.ignored,
+        date=anchors.date,
+        report=report,
+    )
+
+
+def _interpolate(
+    t_src, y_src, t_dst, max_gap: float | None, *, period: float | None = None
+) -> np.ndarray:
+    """Linear interpolation of ``y_src(t_src)`` at ``t_dst``: NaN outside the source span and
+    inside source gaps longer than ``max_gap`` (None: five median source intervals).
+    ``period`` unwraps a cyclic quantity (longitude) first."""
+    t_dst = np.asarray(t_dst, dtype=np.float64)
+    out = np.full(t_dst.shape, math.nan)
+    good = np.isfinite(t_src) & np.isfinite(y_src)
+    t_src, y_src = np.asarray(t_src, np.float64)[good], np.asarray(y_src, np.float64)[good]
+    t_src, first = np.unique(t_src, return_index=True)
+    y_src = y_src[first]
+    if len(t_src) < 2:
+        return out
+    if period is not None:
+        y_src = np.unwrap(y_src, period=period)
+    if max_gap is None:
+        max_gap = _GAP_INTERVALS * float(np.median(np.diff(t_src)))
+    inside = np.isfinite(t_dst) & (t_dst >= t_src[0]) & (t_dst <= t_src[-1])
+    right = np.clip(np.searchsorted(t_src, t_dst[inside], side="left"), 1, len(t_src) - 1)
+    gap = t_src[right] - t_src[right - 1]
+    exact = (t_src[right] == t_dst[inside]) | (t_src[right - 1] == t_dst[inside])
+    values = np.interp(t_dst[inside], t_src, y_src)
+    values[(gap > max_gap) & ~exact] = math.nan
+    if period is not None:
+        values = (values + period / 2) % period - period / 2
+    out[inside] = values
+    return out
+
+
+def to_arrays(parsed: ParsedLog, *, max_gap: float | None = None) -> CalibrationArrays:
+    """The magnetometer samples with the references calibration needs at their times.
+
+    The cesium field and the GPS position (from GGAs with a fix, at their epochs) are
+    interpolated linearly to the magnetometer times; NaN outside the source's span, where
+    the magnetometer time is NaN, and inside source gaps longer than ``max_gap`` seconds
+    (default: five median sample intervals of that source).
+    """
+    if not isinstance(parsed, ParsedLog):
+        raise TypeError(f"Expected a ParsedLog from parse_log, not {type(parsed).__name__}")
+    if max_gap is not None and (
+        isinstance(max_gap, bool) or not isinstance(max_gap, (int, float)) or not max_gap > 0
+    ):
+        raise ValueError(f"Maximum gap must be a positive number of seconds, not {max_gap!r}")
+    mag, gga = parsed.mag, parsed.gga
+    fix = gga.quality >= 1
+    return CalibrationArrays(
+        t=mag.t.copy(),
+        b=mag.b.copy(),
+        seq=mag.seq.copy(),
+        line=mag.line.copy(),
+        cesium=_interpolate(parsed.cesium.t, parsed.cesium.field, mag.t, max_gap),
+        lat=_interpolate(gga.t[fix], gga.lat[fix], mag.t, max_gap),
+        lon=_interpolate(gga.t[fix], gga.lon[fix], mag.t, max_gap, period=2 * _LON_LIMIT),
+        alt=_interpolate(gga.t[fix], gga.altitude[fix], mag.t, max_gap),
+        date=parsed.date,
+    )

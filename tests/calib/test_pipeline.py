@@ -1,0 +1,78 @@
+"""`maglog calibrate` on a card image made by independent FAT tools (mkfs.fat, mcopy)."""
+
+import json
+import shutil
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from maglog.sim.cli import main
+from maglog.sim.scenario import make_flight
+
+TOOLS = {name: shutil.which(name) or next(
+    (str(p) for p in (Path("/usr/sbin") / name, Path("/sbin") / name) if p.exists()), None)
+    for name in ("mkfs.fat", "mcopy")}
+pytestmark = pytest.mark.skipif(
+    not all(TOOLS.values()),
+    reason="card images are built with mkfs.fat (dosfstools) and mcopy (mtools): "
+           "run `make test`, which installs them")
+
+FS_LBA = 2048
+FS_SECTORS = 131072                   # 64 MiB: a legal FAT32 with one-sector clusters
+
+
+def card_image(path, files):
+    """A raw card image: an MBR with one FAT32 (LBA) partition at 1 MiB, formatted and
+    filled by mkfs.fat and mcopy."""
+    with open(path, "wb") as f:
+        f.truncate((FS_LBA + FS_SECTORS) * 512)
+        entry = struct.pack("<B3sB3sII", 0x00, b"\0\0\0", 0x0C, b"\0\0\0", FS_LBA, FS_SECTORS)
+        f.seek(0x1BE)
+        f.write(entry)
+        f.seek(0x1FE)
+        f.write(b"\x55\xAA")
+    subprocess.run([TOOLS["mkfs.fat"], "-F", "32", "-s", "1", "--offset", str(FS_LBA),
+                    "-h", str(FS_LBA), str(path), str(FS_SECTORS // 2)],
+                   check=True, capture_output=True)
+    for name, data in files.items():
+        source = path.parent / name
+        source.write_bytes(data)
+        subprocess.run([TOOLS["mcopy"], "-i", f"{path}@@{FS_LBA * 512}", str(source),
+                        f"::{name}"], check=True, capture_output=True)
+
+
+@pytest.mark.parametrize("ref", ["cesium", "igrf"])
+def test_calibrate_a_card_image(tmp_path, ref, capsys):
+    flight = make_flight(coverage="uav", seconds=60, seed=5)
+    image = tmp_path / "card.img"
+    card_image(image, {"LOG00001.TXT": flight.log(), "NOTES.TXT": b"not a log\r\n"})
+    out = tmp_path / "report"
+    assert main(["calibrate", str(image), "--ref", ref, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "total-field RMS" in printed
+    summary = json.loads((out / "parameters.json").read_text())
+    k_true, c_true = flight.errors.truth()
+    assert summary["log"] == "LOG00001.TXT"
+    assert summary["rms_after_nT"] < 0.01 * summary["rms_before_nT"]
+    if ref == "cesium":
+        np.testing.assert_allclose(np.array(summary["K"]), k_true, atol=5e-4)
+        np.testing.assert_allclose(summary["c"], c_true, atol=25.0)
+    for name in ("report.md", "report.html", "figure7.png", "coverage.png", "residuals.png",
+                 "allan.png"):
+        assert (out / name).stat().st_size > 0
+
+
+def test_errors_are_clear(tmp_path, capsys):
+    garbage = tmp_path / "garbage.img"
+    garbage.write_bytes(bytes(range(256)) * 64)
+    assert main(["calibrate", str(garbage), "--out", str(tmp_path / "r")]) == 1
+    assert "maglog: error:" in capsys.readouterr().err
+    empty = tmp_path / "empty.img"
+    card_image(empty, {"README.TXT": b"hello\r\n"})
+    assert main(["calibrate", str(empty), "--out", str(tmp_path / "r")]) == 1
+    assert "no LOG*.TXT" in capsys.readouterr().err
+    assert main(["calibrate", str(tmp_path / "missing.img")]) == 1
+    assert "no such file" in capsys.readouterr().err
