@@ -15,7 +15,7 @@ import numpy as np
 
 from .card import read_logs
 from .ellipsoid import fit_ellipsoid
-from .logparse import parse_log
+from .logparse import parse_log, to_arrays
 from .noise import allan_deviation
 from .scalar import PARAMETERS, apply_scalar, calibrate_scalar
 
@@ -90,22 +90,26 @@ def _reference(parsed, ref, mag_axis, use_time):
         if len(ces) < 2:
             raise CalibrationError("the log has fewer than 2 cesium samples; use --ref igrf "
                                    "or a value")
-        axis = ces.t if use_time else ces.line.astype(float)
-        r = np.interp(mag_axis, axis, ces.field, left=np.nan, right=np.nan)
-        return r, "cesium magnetometer"
+        if use_time:
+            # The parser's interpolation: NaN outside the cesium span and across dropouts.
+            return to_arrays(parsed).cesium, "cesium magnetometer"
+        return (np.interp(mag_axis, ces.line.astype(float), ces.field, left=np.nan,
+                          right=np.nan), "cesium magnetometer (by arrival order: no GPS time)")
     if ref == "igrf":
         import ppigrf
         gga = parsed.gga
         good = gga.quality > 0
         if not np.any(good):
             raise CalibrationError("the log has no GGA with a fix: IGRF needs a position")
-        date = parsed.date or datetime.datetime(2026, 1, 1)
+        date = parsed.date or datetime.date(2026, 1, 1)
         when = datetime.datetime(date.year, date.month, date.day)
         east, north, up = ppigrf.igrf(gga.lon[good], gga.lat[good],
                                       gga.altitude[good] / 1000.0, when)
         total = np.sqrt(np.ravel(east) ** 2 + np.ravel(north) ** 2 + np.ravel(up) ** 2)
         axis = gga.t[good] if use_time else gga.line[good].astype(float)
-        return np.interp(mag_axis, axis, total), f"IGRF-14 at the GPS position, {when:%Y-%m-%d}"
+        dated = "" if parsed.date else " (no ZDA date: 2026-01-01 assumed)"
+        return (np.interp(mag_axis, axis, total),
+                f"IGRF-14 at the GPS position, {when:%Y-%m-%d}{dated}")
     raise CalibrationError(f"reference must be cesium, igrf or a field value in nT, "
                            f"not {ref!r}")
 
