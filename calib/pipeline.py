@@ -154,6 +154,14 @@ def _plots(run, out):
     import matplotlib.pyplot as plt
 
     files = {}
+
+    def save(fig, key, title):
+        fig.axes[0].set_title(title)
+        fig.tight_layout()
+        files[key] = out / f"{key}.png"
+        fig.savefig(files[key], dpi=110)
+        plt.close(fig)
+
     raw = np.linalg.norm(run.b, axis=1)
     fig, ax = plt.subplots(figsize=(9, 4))
     ax.plot(run.t, raw, lw=0.6, label="raw |B|")
@@ -161,12 +169,8 @@ def _plots(run, out):
     ax.plot(run.t, run.r, lw=1.0, label="reference", color="k")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("total field (nT)")
-    ax.set_title("Total field before and after calibration")
     ax.legend()
-    fig.tight_layout()
-    files["figure7"] = out / "figure7.png"
-    fig.savefig(files["figure7"], dpi=110)
-    plt.close(fig)
+    save(fig, "figure7", "Total field before and after calibration")
 
     unit = run.b - run.b.mean(axis=0)
     unit /= np.linalg.norm(unit, axis=1)[:, None]
@@ -175,20 +179,12 @@ def _plots(run, out):
                np.degrees(np.arcsin(np.clip(unit[:, 2], -1, 1))), s=1)
     ax.set_xlabel("azimuth of the field in the sensor frame (deg)")
     ax.set_ylabel("elevation (deg)")
-    ax.set_title("Attitude coverage")
-    fig.tight_layout()
-    files["coverage"] = out / "coverage.png"
-    fig.savefig(files["coverage"], dpi=110)
-    plt.close(fig)
+    save(fig, "coverage", "Attitude coverage")
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.hist(run.residual, bins=80)
     ax.set_xlabel("compensated |B| - reference (nT)")
-    ax.set_title("Residuals")
-    fig.tight_layout()
-    files["residuals"] = out / "residuals.png"
-    fig.savefig(files["residuals"], dpi=110)
-    plt.close(fig)
+    save(fig, "residuals", "Residuals")
 
     if len(run.t) > 20 and np.all(np.isfinite(run.t)):
         rate = 1.0 / float(np.median(np.diff(run.t))) if np.median(np.diff(run.t)) > 0 else 1.0
@@ -197,11 +193,7 @@ def _plots(run, out):
         ax.loglog(allan.taus, allan.deviation)
         ax.set_xlabel("tau (s)")
         ax.set_ylabel("Allan deviation (nT)")
-        ax.set_title("Allan deviation of the residual")
-        fig.tight_layout()
-        files["allan"] = out / "allan.png"
-        fig.savefig(files["allan"], dpi=110)
-        plt.close(fig)
+        save(fig, "allan", "Allan deviation of the residual")
     return files
 
 

@@ -270,15 +270,6 @@ class BrokenFifo(FrameFifo):
 
 # --- running SymbiYosys ---------------------------------------------------------------------
 
-@pytest.fixture(scope="module")
-def sby_env(tmp_path_factory):
-    """The yowasp tools (see :mod:`maglog.sim.formal`); skips when they are missing."""
-    try:
-        return formal.find_tools(tmp_path_factory.mktemp("bin"))
-    except formal.FormalToolsMissing as missing:
-        pytest.skip(str(missing))
-
-
 def run_sby(sby_env, directory, spec, *, mode, steps):
     """Prove (or cover, or bounded-check) ``spec``; return (returncode, log)."""
     return formal.run_sby(sby_env, directory, spec, ports=spec.ports(), mode=mode,
