@@ -35,6 +35,8 @@ OFFSET_FRACTION = 0.5
 #: Scaled condition number above which the coverage is reported as not determining the
 #: parameters.
 POORLY_DETERMINED = 1e6
+#: Weight of the constrained fallback's prior, relative to the best-determined direction.
+PRIOR_WEIGHT = 1e-3
 
 
 @dataclass
@@ -95,14 +97,29 @@ def _jacobian(u, norm, b):
                             -d[:, 0], -d[:, 1], -d[:, 2]])
 
 
-def _lm(p, b, r, lower, upper, *, max_iter=200, tol=1e-12):
-    """Bounded Levenberg-Marquardt: damped Gauss-Newton steps projected into the box."""
-    e, u, norm = _residuals(p, b, r)
+def _lm(p, b, r, lower, upper, *, max_iter=200, tol=1e-12, prior=None):
+    """Bounded Levenberg-Marquardt: damped Gauss-Newton steps projected into the box.
+
+    ``prior`` = (A, target): extra residual rows ``A p - target`` (a constrained fit)."""
+    if prior is not None:
+        rows, target = prior
+        plain = _residuals
+
+        def _residuals_with_prior(q, b_, r_):
+            e_, u_, n_ = plain(q, b_, r_)
+            return np.concatenate([e_, rows @ q - target]), u_, n_
+        residuals = _residuals_with_prior
+
+        def jacobian(u_, n_, b_):
+            return np.vstack([_jacobian(u_, n_, b_), rows])
+    else:
+        residuals, jacobian = _residuals, _jacobian
+    e, u, norm = residuals(p, b, r)
     cost = float(e @ e)
     lam = 1e-3
     it = 0
     for it in range(1, max_iter + 1):
-        j = _jacobian(u, norm, b)
+        j = jacobian(u, norm, b)
         a = j.T @ j
         g = j.T @ e
         improved = False
@@ -113,7 +130,7 @@ def _lm(p, b, r, lower, upper, *, max_iter=200, tol=1e-12):
                 lam *= 10
                 continue
             trial = np.clip(p + step, lower, upper)
-            e_t, u_t, n_t = _residuals(trial, b, r)
+            e_t, u_t, n_t = residuals(trial, b, r)
             cost_t = float(e_t @ e_t)
             if cost_t < cost:
                 improved = True
@@ -124,7 +141,7 @@ def _lm(p, b, r, lower, upper, *, max_iter=200, tol=1e-12):
             lam *= 10
         if not improved or decrease <= tol * max(cost, 1e-300):
             break
-    return p, cost, it, e, _jacobian(u, norm, b)
+    return p, cost, it, e, jacobian(u, norm, b)
 
 
 def _check(b, r):
@@ -205,11 +222,28 @@ def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300
     except np.linalg.LinAlgError:
         uncertainties = np.full(len(PARAMETERS), np.inf)
     if not np.isfinite(condition) or condition > POORLY_DETERMINED:
-        weak = vectors[:, 0]
-        names = [PARAMETERS[i] for i in np.argsort(-np.abs(weak))[:2]]
+        # Constrained fallback: the directions the coverage cannot see are held to the
+        # isotropic start (K = scale I, c = 0) by a prior that outweighs the data only
+        # along them; everything the data determine is fitted as before.
+        weak_dirs = vectors[:, values < values[-1] / POORLY_DETERMINED]
+        rows = (weak_dirs.T * d) * np.sqrt(values[-1] * PRIOR_WEIGHT)
+        x, cost_prior, more, e, j_full = _lm(x, b, r, lower, upper,
+                                             prior=(rows, rows @ identity))
+        nit += more
+        e = e[:b.shape[0]]
+        cost = float(e @ e)
+        a = j_full[:b.shape[0]].T @ j_full[:b.shape[0]]
+        names = [PARAMETERS[i] for i in np.argsort(-np.abs(vectors[:, 0]))[:2]]
         warnings.append("the attitude coverage hardly determines "
                         f"{' against '.join(names)} (scaled condition number "
-                        f"{condition:.3g}); their uncertainties say how much")
+                        f"{condition:.3g}): constrained fit, that combination held to the "
+                        "isotropic prior")
+        try:
+            prior_a = a + rows.T @ rows
+            uncertainties = np.sqrt(np.clip(np.diag(np.linalg.inv(prior_a) * cost / dof),
+                                            0, None))
+        except np.linalg.LinAlgError:
+            pass
     at_bound = [name for name, v, lo, hi in zip(PARAMETERS, x, lower, upper)
                 if np.isclose(v, lo) or np.isclose(v, hi)]
     if at_bound:
