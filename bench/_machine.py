@@ -122,3 +122,18 @@ def command_line(argv):
     except ValueError:
         pass
     return " ".join([str(python), str(script), *argv])
+
+
+def write_report(path, benchmark, argv, load_start, tools, **fields):
+    """Write a benchmark's JSON: what ran, on what machine and tree, and its figures."""
+    import json
+    import sys
+    report = {
+        "benchmark": benchmark, "date": now(),
+        "command": command_line(sys.argv[1:] if argv is None else argv),
+        "machine": machine(), "load_average": {"start": load_start, "end": load()},
+        "tools": tools, "work_tree": work_tree(), **fields,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    print(f"written {path}")

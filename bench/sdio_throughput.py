@@ -11,14 +11,13 @@ Run from the repository root: ``.venv/bin/python bench/sdio_throughput.py``.
 """
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _machine import command_line, load, machine, now, packages, work_tree
+from _machine import load, packages, write_report
 
 from maglog.hw.arch import sd as arch
 from maglog.hw.sdio.host import SdioHost
@@ -110,15 +109,8 @@ def main(argv=None):
           f"for {result['bus_limit_clocks']} data clocks: efficiency "
           f"{100 * result['efficiency']:.2f} % ({result['clocks_per_block']:.1f} clocks a "
           f"block; busy {result['busy_clocks']} clocks excluded)")
-    report = {
-        "benchmark": "sdio_throughput", "date": now(),
-        "command": command_line(sys.argv[1:] if argv is None else argv),
-        "machine": machine(), "load_average": {"start": load_start, "end": load()},
-        "tools": packages("amaranth"), "work_tree": work_tree(), "result": result,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"written {args.output}")
+    write_report(args.output, "sdio_throughput", argv, load_start, packages("amaranth"),
+                 result=result)
     return 0 if result["efficiency"] >= 0.95 else 1
 
 

@@ -10,14 +10,13 @@ Run from the repository root: ``.venv/bin/python bench/sdram_bandwidth.py``.
 """
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _machine import command_line, load, machine, now, packages, work_tree
+from _machine import load, packages, write_report
 
 from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
 from maglog.sim.sdram_amaranth import run_requests
@@ -61,15 +60,8 @@ def main(argv=None):
                   f"{result['clocks']} clocks ({result['refreshes']} refreshes): "
                   f"{100 * result['efficiency']:.1f} % of one word a clock, "
                   f"{result['bytes_per_second'] / 1e6:.1f} MB/s at 50 MHz")
-    report = {
-        "benchmark": "sdram_bandwidth", "date": now(),
-        "command": command_line(sys.argv[1:] if argv is None else argv),
-        "machine": machine(), "load_average": {"start": load_start, "end": load()},
-        "tools": packages("amaranth"), "work_tree": work_tree(), "results": results,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"written {args.output}")
+    write_report(args.output, "sdram_bandwidth", argv, load_start, packages("amaranth"),
+                 results=results)
     return 0 if all(r["efficiency"] >= 0.8 for r in results) else 1
 
 

@@ -15,7 +15,6 @@ Run from the repository root: ``.venv/bin/python bench/calib/run.py``.
 """
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ import numpy as np
 BENCH = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(BENCH))
 
-from _machine import command_line, load, machine, now, packages, work_tree
+from _machine import load, packages, write_report
 
 from maglog.calib import _pso
 from maglog.calib.scalar import apply_scalar, calibrate_scalar
@@ -144,18 +143,11 @@ def main(argv=None):
     print(f"one-hour 50 Hz flight ({len(parsed.mag.b)} samples) from log text to "
           f"parameters: {t_hour:.2f} s (RMS {result.rms:.2f} nT)")
 
-    report = {
-        "benchmark": "calib", "date": now(),
-        "command": command_line(sys.argv[1:] if argv is None else argv),
-        "machine": machine(), "load_average": {"start": load_start, "end": load()},
-        "tools": packages("numpy", "numba", "scipy", "pyswarms"), "work_tree": work_tree(),
-        "accuracy": accuracy, "lm_2000_seconds": t_lm, "pso_stage": pso_row,
-        "hour_flight": {"samples": int(len(parsed.mag.b)), "seconds": t_hour,
-                        "rms_nT": result.rms},
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(report, indent=2, default=str) + "\n")
-    print(f"written {args.output}")
+    write_report(args.output, "calib", argv, load_start,
+                 packages("numpy", "numba", "scipy", "pyswarms"),
+                 accuracy=accuracy, lm_2000_seconds=t_lm, pso_stage=pso_row,
+                 hour_flight={"samples": int(len(parsed.mag.b)), "seconds": t_hour,
+                              "rms_nT": result.rms})
 
 
 if __name__ == "__main__":
