@@ -237,7 +237,7 @@ def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300
         warnings.append("the attitude coverage hardly determines "
                         f"{' against '.join(names)} (scaled condition number "
                         f"{condition:.3g}): constrained fit, that combination held to the "
-                        "isotropic prior")
+                        "isotropic prior; its uncertainty reflects the prior, not the data")
         try:
             prior_a = a + rows.T @ rows
             uncertainties = np.sqrt(np.clip(np.diag(np.linalg.inv(prior_a) * cost / dof),

@@ -181,7 +181,8 @@ def _cmd_calibrate(args):
         raise CliError(f"{args.card}: no such file")
     print(f"[1/3] reading {args.card}", file=sys.stderr)
     try:
-        run = calibrate_card(args.card, ref=args.ref, method=args.method, seed=args.seed)
+        run = calibrate_card(args.card, ref=args.ref, method=args.method, seed=args.seed,
+                             attitude=args.attitude)
     except (CardError, CalibrationError) as error:
         raise CliError(str(error)) from None
     print(f"[2/3] {run.log_name}: {len(run.b)} samples calibrated ({run.method}, "
@@ -191,7 +192,18 @@ def _cmd_calibrate(args):
     print(f"[3/3] report: {paths['markdown']}\n")
     rows = [["total-field RMS (nT)", f"{summary['rms_before_nT']:.2f}",
              f"{summary['rms_after_nT']:.2f}"]]
+    heading = run.heading.as_dict(run.t)
+    if "error_rms_deg" in heading:
+        errors = heading["error_rms_deg"]
+        rows.append(["heading error vs attitude (deg RMS)", "",
+                     f"{errors['before_alignment']:.2f}"
+                     + (f" -> {errors['after_alignment']:.2f} aligned"
+                        if heading["alignment"] else "")])
     print(_table(["", "before", "after"], rows))
+    if heading["alignment"]:
+        align = heading["alignment"]
+        print(f"heading offset {align['offset_deg']:+.2f} deg from {len(align['legs'])} "
+              "straight, level legs (removed from the aligned headings)")
     for warning in getattr(run.result, "warnings", []):
         print(f"warning: {warning}")
     print(f"parameters: {paths['json']}")
@@ -244,6 +256,10 @@ def _parser():
                            help="PSO then LM, LM alone, or an ellipsoid fit "
                                 "(default: %(default)s)")
     calibrate.add_argument("--seed", type=int, default=0, help="PSO seed (default: 0)")
+    calibrate.add_argument("--attitude", metavar="CSV",
+                           help="known attitude (t,roll_deg,pitch_deg,heading_deg; t in s "
+                                "since 00:00 UTC of the log's date): tilt-compensates the "
+                                "headings and plots their error")
     calibrate.add_argument("--out", default="build/calibration",
                            help="report folder (default: %(default)s)")
     calibrate.set_defaults(func=_cmd_calibrate)

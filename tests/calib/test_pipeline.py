@@ -76,3 +76,60 @@ def test_errors_are_clear(tmp_path, capsys):
     assert "no LOG*.TXT" in capsys.readouterr().err
     assert main(["calibrate", str(tmp_path / "missing.img")]) == 1
     assert "no such file" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    """A survey flight (calibration manoeuvre, then six lines in a wind) with the sensor
+    yawed 5° in the airframe, as a plain log and an attitude file."""
+    from maglog.sim.scenario import ErrorModel, make_survey
+    flight = make_survey(errors=ErrorModel(mounting=(0.0, 0.0, 5.0)), seed=6)
+    folder = tmp_path_factory.mktemp("survey")
+    (folder / "LOG00002.TXT").write_bytes(flight.log())
+    (folder / "attitude.csv").write_bytes(flight.attitude_csv())
+    return folder
+
+
+def test_heading_alignment_and_error_against_the_attitude(survey, tmp_path, capsys):
+    out = tmp_path / "report"
+    assert main(["calibrate", str(survey / "LOG00002.TXT"), "--attitude",
+                 str(survey / "attitude.csv"), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "heading offset" in printed
+    heading = json.loads((out / "parameters.json").read_text())["heading"]
+    assert heading["legs_found"] == 6 and heading["attitude_known"]
+    errors = heading["error_rms_deg"]
+    # What stays on the legs is the frame's tilt (about ±1.4° here, flipping sign between
+    # the reciprocal lines), which the course over ground cannot see.
+    assert errors["legs_before_alignment"] > 2.5
+    assert errors["legs_after_alignment"] < 0.5 * errors["legs_before_alignment"]
+    assert errors["after_alignment"] < errors["before_alignment"]
+    assert (out / "heading_error.png").stat().st_size > 0
+    report = (out / "report.md").read_text()
+    assert "## Heading" in report and "heading - course" in report
+    # Without the attitude the same log is aligned from level-flight headings alone.
+    assert main(["calibrate", str(survey / "LOG00002.TXT"), "--out", str(tmp_path / "r2")]) == 0
+    level = json.loads((tmp_path / "r2" / "parameters.json").read_text())["heading"]
+    assert level["alignment"]["offset_deg"] == pytest.approx(
+        heading["alignment"]["offset_deg"], abs=0.4)
+    assert not (tmp_path / "r2" / "heading_error.png").exists()
+
+
+@pytest.mark.parametrize("text,message", [
+    (None, "no such attitude file"),
+    ("", "is empty"),
+    ("t,roll_deg,pitch_deg\n1,0,0\n", "lacks heading_deg"),
+    ("t,roll_deg,pitch_deg,heading_deg\n1,0,0,10\n2,0,zero,10\n", ":3: not a number"),
+    ("t,roll_deg,pitch_deg,heading_deg\n1,0,0,10\n2,0,0\n", ":3: 3 fields"),
+    ("t,roll_deg,pitch_deg,heading_deg\n1,0,0,10\n", "at least 2 rows"),
+    ("t,roll_deg,pitch_deg,heading_deg\n5,0,0,10\n5,0,0,10\n", "t must increase"),
+    ("t,roll_deg,pitch_deg,heading_deg\n1,0,0,nan\n2,0,0,1\n", "not a finite number"),
+    ("heading_deg,t,pitch_deg,roll_deg\n10,1,0,0\n10,2,0,0\n", "do not overlap"),
+])
+def test_attitude_file_errors(survey, tmp_path, capsys, text, message):
+    path = tmp_path / "attitude.csv"
+    if text is not None:
+        path.write_text(text)
+    assert main(["calibrate", str(survey / "LOG00002.TXT"), "--attitude", str(path),
+                 "--out", str(tmp_path / "r")]) == 1
+    assert message in capsys.readouterr().err
