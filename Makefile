@@ -2,7 +2,7 @@
 VENV ?= .venv
 PYTEST_ARGS ?=
 
-.PHONY: setup demo test test-slow bench clean
+.PHONY: setup demo test test-slow bench-peers bench-calib clean
 
 setup:
 	@VENV=$(VENV) ./scripts/setup.sh
@@ -15,6 +15,13 @@ test: setup
 
 test-slow: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VENV)/bin/python -m pytest -n 2 -m slow $(PYTEST_ARGS)
+
+# The calibration benchmark and the peers it compares against (see bench/RESULTS.md).
+bench-peers: setup
+	VENV=$(VENV) ./scripts/peers.sh
+
+bench-calib: bench-peers
+	$(VENV)/bin/python bench/calib/run.py
 
 clean:
 	rm -rf build .pytest_cache

@@ -140,8 +140,8 @@ def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate=Tr
     if w_u is None:
         return EllipsoidResult(center=nan3, W=np.full((3, 3), np.nan), radii=nan3,
                                rms=np.nan, success=False,
-                               message="the fitted quadric is not an ellipsoid; use "
-                                       "method='constrained'",
+                               message="the fitted quadric is not an ellipsoid (the "
+                                       "constrained method always gives one)",
                                coverage=coverage, method=method)
     center = mean + spread * center_u
     w = field_nt * w_u / spread

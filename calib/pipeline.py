@@ -63,7 +63,8 @@ class CalibrationRun:
                "log_report": _jsonable(vars(self.parsed.report))}
         if self.method == "ellipsoid":
             res = self.result
-            out.update(center_nT=res.center.tolist(), W=res.W.tolist(),
+            out.update(fit=res.method, warnings=list(res.warnings),
+                       center_nT=res.center.tolist(), W=res.W.tolist(),
                        W_eigenvalues=np.linalg.eigvalsh(res.W).tolist(),
                        coverage=res.coverage.report(), success=res.success,
                        message=res.message)
@@ -313,6 +314,11 @@ def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None):
     t = mag.t[keep] if use_time else mag_axis[keep]
     if method == "ellipsoid":
         result = fit_ellipsoid(b, float(np.median(r)))
+        if not result.success and result.coverage.complete:
+            # The algebraic quadric is not an ellipsoid: the constrained fit always is.
+            result = fit_ellipsoid(b, float(np.median(r)), method="constrained")
+            result.warnings.append("the algebraic fit gave no ellipsoid: constrained "
+                                   "(Li-Griffiths) fit used")
         if not result.success:
             raise CalibrationError(f"{name}: ellipsoid fit refused: {result.message}")
         vectors = (b - result.center) @ result.W.T
@@ -459,6 +465,7 @@ def write_report(run, out_dir):
                   f"Octant coverage: {res.coverage.filled} of 8 octants with at least "
                   f"{res.coverage.min_per_octant} samples ({res.coverage.counts.tolist()}).",
                   ""]
+        lines += [f"> warning: {warning}" for warning in res.warnings]
     if run.heading is not None:
         lines += _heading_lines(run.heading, run.t)
     bad = run.parsed.report.bad if hasattr(run.parsed.report, "bad") else {}

@@ -9,13 +9,26 @@ near-planar (±5°) attitude coverage at noise 5, 20 and 100 nT:
 - the PSO stage against ``pyswarms`` (GlobalBestPSO) with the same swarm size and
   iterations on the same objective (time), when pyswarms is installed;
 - time of a deterministic (LM) fit of 2000 samples, and of a one-hour 50 Hz flight
-  (180,000 samples) calibrated end to end from its log text.
+  (180,000 samples) calibrated end to end from its log text;
+- maglog's ellipsoid fits (algebraic and constrained) against the `magyc` package's
+  (``ellipsoid_fit`` and ``ellipsoid_fit_fang``) on the same samples: the total-field ratio
+  (each fit's magnitude scaled by the one factor that best matches the reference, as an
+  ellipsoid fit knows the shape, not the field), the direction error left after the best
+  proper rotation onto the true body field (a reversed axis cannot be rotated away), the
+  sign of the calibration matrix, and time. magyc pins numpy < 2, so it runs in its own
+  venv (``make bench-peers``) through ``bench/calib/magyc_worker.py``;
+- the heading offset found on the straight, level lines of a survey flight with the sensor
+  yawed in the airframe, against the truth.
 
 Run from the repository root: ``.venv/bin/python bench/calib/run.py``.
 """
 
 import argparse
+import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -27,10 +40,13 @@ sys.path.insert(0, str(BENCH))
 from _machine import load, packages, write_report
 
 from maglog.calib import _pso
+from maglog.calib.ellipsoid import fit_ellipsoid
 from maglog.calib.scalar import apply_scalar, calibrate_scalar
-from maglog.sim.scenario import COVERAGES, ErrorModel, make_flight
+from maglog.sim.scenario import COVERAGES, ErrorModel, make_flight, make_survey
 
 DEFAULT_OUTPUT = BENCH / "results" / "calib.json"
+PEERS_PYTHON = Path(os.environ.get("MAGLOG_PEERS_PYTHON",
+                                   BENCH.parent / ".venv-peers" / "bin" / "python"))
 NOISES = (5.0, 20.0, 100.0)
 
 
@@ -83,6 +99,118 @@ def _pyswarms_run(b, r, particles, iterations, lower, upper):
                               verbose=False)
 
 
+def kabsch_angles(vectors, truth):
+    """Angles (deg) between the calibrated directions and the true ones after the best
+    proper rotation (det +1) of the calibrated frame."""
+    u = vectors / np.linalg.norm(vectors, axis=1)[:, None]
+    v = truth / np.linalg.norm(truth, axis=1)[:, None]
+    left, _, right = np.linalg.svd(u.T @ v)
+    d = np.sign(np.linalg.det(right.T @ left.T))
+    rotation = right.T @ np.diag([1.0, 1.0, d]) @ left.T
+    return np.degrees(np.arccos(np.clip(np.sum((u @ rotation.T) * v, axis=1), -1, 1)))
+
+
+def ellipsoid_metrics(vectors, matrix, flight, floor):
+    magnitude = np.linalg.norm(vectors, axis=1)
+    scale = float(magnitude @ flight.total / (magnitude @ magnitude))
+    rms = float(np.sqrt(np.mean((scale * magnitude - flight.total) ** 2)))
+    angles = kabsch_angles(vectors, flight.b_earth)
+    symmetric = (matrix + matrix.T) / 2
+    return {"ratio": rms / floor, "direction_rms_deg": float(np.sqrt(np.mean(angles ** 2))),
+            "det": float(np.linalg.det(matrix)),
+            "positive_definite": bool(np.all(np.linalg.eigvalsh(symmetric) > 0))}
+
+
+def magyc_fits(samples):
+    """magyc's ellipsoid fits on each (N, 3) array, through the peers' venv."""
+    if not PEERS_PYTHON.exists():
+        return None, f"{PEERS_PYTHON} not found: run `make bench-peers`"
+    with tempfile.TemporaryDirectory() as scratch:
+        path = Path(scratch) / "samples.npz"
+        np.savez(path, **samples)
+        done = subprocess.run([str(PEERS_PYTHON), str(BENCH / "calib" / "magyc_worker.py"),
+                               str(path)], capture_output=True, text=True, cwd=scratch)
+    if done.returncode != 0:
+        return None, f"magyc worker failed: {done.stderr.strip().splitlines()[-1:]}"
+    return json.loads(done.stdout), None
+
+
+def ellipsoid_section(flights):
+    rows = []
+    peers, why = magyc_fits({key: f.b_meas for key, (f, _) in flights.items()})
+    for key, (flight, floor) in flights.items():
+        row = {"case": key}
+        for method in ("algebraic", "constrained"):
+            fit, seconds = best_of(lambda: fit_ellipsoid(flight.b_meas,
+                                                         float(np.median(flight.total)),
+                                                         method=method), 3)
+            if fit.success:
+                vectors = (flight.b_meas - fit.center) @ fit.W.T
+                row[f"maglog_{method}"] = dict(ellipsoid_metrics(vectors, fit.W, flight,
+                                                                 floor), seconds=seconds)
+            else:
+                row[f"maglog_{method}"] = {"refused": fit.message, "seconds": seconds}
+        if peers is None:
+            row["magyc"] = {"not_run": why}
+        else:
+            for name, got in peers["cases"][key].items():
+                if "error" in got:
+                    row[f"magyc_{name}"] = {"error": got["error"]}
+                    continue
+                inverse = np.linalg.inv(np.array(got["soft_iron"]))
+                vectors = (flight.b_meas - np.array(got["hard_iron"])) @ inverse.T
+                metrics = ellipsoid_metrics(vectors, inverse, flight, floor)
+                finite = bool(np.all(np.isfinite(vectors)))
+                head = np.array(got["calibrated_head"])
+                # Does the field magyc returns agree with its own parameters?
+                own = bool(np.allclose(head, vectors[:len(head)], rtol=1e-6, atol=1e-3))
+                row[f"magyc_{name}"] = dict(metrics, seconds=got["seconds"], finite=finite,
+                                            returned_field_matches_parameters=own,
+                                            warnings=got["warnings"])
+        rows.append(row)
+        print(f"ellipsoid {key}: " + "; ".join(
+            f"{name} " + (f"ratio {m['ratio']:.3f}, direction {m['direction_rms_deg']:.2f} deg"
+                          f"{'' if m['positive_definite'] else ', NOT positive definite'}"
+                          if "ratio" in m else str(next(iter(m.values()))))
+            for name, m in row.items() if name != "case"))
+    return rows, (None if peers is None else {"numpy": peers["numpy"]})
+
+
+def heading_section():
+    """The heading offset found from the course over ground on a survey's lines, against
+    the truth (the true-attitude heading error's constant part)."""
+    from maglog.calib.heading import (align_heading, declination, straight_legs,
+                                      tilt_compensated_heading, true_heading, wrap_degrees)
+    from maglog.calib.logparse import parse_log
+    rows = []
+    for yaw in (0.0, 3.0, -6.0):
+        flight = make_survey(errors=ErrorModel(mounting=(0.0, 0.0, yaw)), seed=11)
+        parsed = parse_log(flight.log())
+        r = np.interp(parsed.mag.t, parsed.cesium.t, parsed.cesium.field)
+        fit = calibrate_scalar(parsed.mag.b, r)
+        vectors = apply_scalar(fit.K, fit.c, parsed.mag.b)
+        decl = declination(flight.lat, flight.lon, flight.altitude_m, flight.start)
+        level = true_heading(tilt_compensated_heading(vectors, 0.0, 0.0), decl)
+        vtg = parsed.vtg
+        legs = straight_legs(vtg.t, vtg.course, vtg.speed, altitude_t=parsed.gga.t,
+                             altitude=parsed.gga.altitude)
+        alignment = align_heading(parsed.mag.t, level, legs)
+        truth = np.degrees(flight.heading)
+        error = wrap_degrees(true_heading(tilt_compensated_heading(
+            vectors, flight.roll, flight.pitch), decl) - truth)
+        means = []
+        for leg in legs:
+            sel = (parsed.mag.t >= leg.start) & (parsed.mag.t <= leg.end)
+            means.append(float(np.mean(error[sel])))
+        constant = float(np.mean(means))            # equal numbers of legs each way
+        row = {"mounting_yaw_deg": yaw, "legs": len(legs), "true_offset_deg": constant,
+               "found_offset_deg": alignment.offset, "found_std_deg": alignment.offset_std}
+        rows.append(row)
+        print(f"heading: mounting yaw {yaw:+.1f} deg: offset true {constant:+.2f}, found "
+              f"{alignment.offset:+.2f} +- {alignment.offset_std:.2f} deg from {len(legs)} legs")
+    return rows
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=100.0,
@@ -93,11 +221,13 @@ def main(argv=None):
     calibrate_scalar(np.eye(3).repeat(4, axis=0) * 5e4 + 1, 5e4)      # JIT warm-up
 
     accuracy = []
+    flights = {}
     for coverage in COVERAGES:
         for noise in NOISES:
             flight = make_flight(coverage=coverage, seconds=args.seconds, seed=7,
                                  errors=ErrorModel(noise=noise))
             floor = floor_rms(flight)
+            flights[f"{coverage}_{noise:g}"] = (flight, floor)
             ours, t_ours = best_of(lambda: calibrate_scalar(flight.b_meas, flight.total), 3)
             theirs, t_scipy = best_of(lambda: scipy_fit(flight.b_meas, flight.total), 3)
             scipy_rms = float(np.sqrt(np.mean(theirs.fun ** 2)))
@@ -143,8 +273,12 @@ def main(argv=None):
     print(f"one-hour 50 Hz flight ({len(parsed.mag.b)} samples) from log text to "
           f"parameters: {t_hour:.2f} s (RMS {result.rms:.2f} nT)")
 
+    ellipsoids, peers = ellipsoid_section(flights)
+    headings = heading_section()
+
     write_report(args.output, "calib", argv, load_start,
                  packages("numpy", "numba", "scipy", "pyswarms"),
+                 ellipsoid=ellipsoids, peers_venv=peers, heading=headings,
                  accuracy=accuracy, lm_2000_seconds=t_lm, pso_stage=pso_row,
                  hour_flight={"samples": int(len(parsed.mag.b)), "seconds": t_hour,
                               "rms_nT": result.rms})

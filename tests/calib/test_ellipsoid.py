@@ -52,3 +52,38 @@ def test_bad_input():
         fit_ellipsoid(np.zeros((5, 3)), FIELD)
     with pytest.raises(ValueError, match="Method must be"):
         fit_ellipsoid(samples(4)[0], FIELD, method="magic")
+
+
+def hyperboloid(n=3000, seed=5):
+    """Points on x^2 + y^2 - z^2 / 4 = 1 (scaled): every octant, but no ellipsoid."""
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0, 2 * np.pi, n)
+    height = rng.uniform(-1, 1, n)
+    radius = np.sqrt(1 + height ** 2 / 4)
+    return FIELD * np.column_stack([radius * np.cos(angle), radius * np.sin(angle), height])
+
+
+def test_no_ellipsoid_from_the_algebraic_fit_but_always_from_the_constrained_one():
+    b = hyperboloid()
+    algebraic = fit_ellipsoid(b, FIELD)
+    assert not algebraic.success and "not an ellipsoid" in algebraic.message
+    constrained = fit_ellipsoid(b, FIELD, method="constrained")
+    assert constrained.success
+    assert np.all(np.linalg.eigvalsh(constrained.W) > 0)
+
+
+@pytest.mark.parametrize("method", ["algebraic", "constrained"])
+def test_calibration_matrix_sign_is_fixed(method):
+    """W is the positive-definite root whichever overall sign the quadric came out with:
+    the same samples reflected through the centre give the same W."""
+    b, soft, hard = samples(6)
+    result = fit_ellipsoid(b, FIELD, method=method)
+    mirrored = fit_ellipsoid(2 * hard - b, FIELD, method=method)
+    assert np.all(np.linalg.eigvalsh(result.W) > 0) and np.linalg.det(result.W) > 0
+    np.testing.assert_allclose(mirrored.W, result.W, rtol=1e-6, atol=1e-9)
+    # And the calibrated field keeps the sensor's sense: no axis reversed.
+    calibrated = (b - result.center) @ result.W.T
+    true = (b - hard) @ np.linalg.inv(soft).T
+    cos = np.sum(calibrated * true, axis=1) / (np.linalg.norm(calibrated, axis=1)
+                                                * np.linalg.norm(true, axis=1))
+    assert np.min(cos) > 0.99

@@ -133,3 +133,30 @@ def test_attitude_file_errors(survey, tmp_path, capsys, text, message):
     assert main(["calibrate", str(survey / "LOG00002.TXT"), "--attitude", str(path),
                  "--out", str(tmp_path / "r")]) == 1
     assert message in capsys.readouterr().err
+
+
+def test_ellipsoid_method_and_its_constrained_fallback(tmp_path, capsys):
+    from maglog.sim import sentences
+    flight = make_flight(coverage="full", seconds=60, seed=8)
+    log = tmp_path / "LOG00003.TXT"
+    log.write_bytes(flight.log())
+    out = tmp_path / "e"
+    assert main(["calibrate", str(log), "--method", "ellipsoid", "--out", str(out)]) == 0
+    summary = json.loads((out / "parameters.json").read_text())
+    assert summary["fit"] == "algebraic" and min(summary["W_eigenvalues"]) > 0
+    assert summary["rms_after_nT"] < 0.01 * summary["rms_before_nT"]
+    assert "positive-definite" in (out / "report.md").read_text()
+    # Samples on a hyperboloid: the algebraic quadric is none, the constrained fit is used.
+    rng = np.random.default_rng(1)
+    angle, height = rng.uniform(0, 2 * np.pi, 3000), rng.uniform(-1, 1, 3000)
+    radius = np.sqrt(1 + height ** 2 / 4)
+    b = 30_000 * np.column_stack([radius * np.cos(angle), radius * np.sin(angle), height])
+    lines = b"".join(sentences.pmag1(k, *v) + sentences.cesium(48_000.0, 1500)
+                     for k, v in enumerate(b))
+    odd = tmp_path / "LOG00004.TXT"
+    odd.write_bytes(lines)
+    assert main(["calibrate", str(odd), "--method", "ellipsoid", "--out",
+                 str(tmp_path / "h")]) == 0
+    summary = json.loads((tmp_path / "h" / "parameters.json").read_text())
+    assert summary["fit"] == "constrained"
+    assert any("constrained" in w for w in summary["warnings"])
