@@ -177,37 +177,36 @@ def ellipsoid_section(flights):
 
 
 def heading_section():
-    """The heading offset found from the course over ground on a survey's lines, against
-    the truth (the true-attitude heading error's constant part)."""
-    from maglog.calib.heading import (align_heading, declination, straight_legs,
-                                      tilt_compensated_heading, true_heading, wrap_degrees)
-    from maglog.calib.logparse import parse_log
+    """The heading offset ``maglog calibrate`` finds from the course over ground on a
+    survey's lines, against the truth (the constant part of the heading error computed
+    with the true attitude)."""
+    from maglog.calib.heading import (tilt_compensated_heading, true_heading,
+                                      wrap_degrees)
+    from maglog.calib.pipeline import calibrate_card
     rows = []
     for yaw in (0.0, 3.0, -6.0):
         flight = make_survey(errors=ErrorModel(mounting=(0.0, 0.0, yaw)), seed=11)
-        parsed = parse_log(flight.log())
-        r = np.interp(parsed.mag.t, parsed.cesium.t, parsed.cesium.field)
-        fit = calibrate_scalar(parsed.mag.b, r)
-        vectors = apply_scalar(fit.K, fit.c, parsed.mag.b)
-        decl = declination(flight.lat, flight.lon, flight.altitude_m, flight.start)
-        level = true_heading(tilt_compensated_heading(vectors, 0.0, 0.0), decl)
-        vtg = parsed.vtg
-        legs = straight_legs(vtg.t, vtg.course, vtg.speed, altitude_t=parsed.gga.t,
-                             altitude=parsed.gga.altitude)
-        alignment = align_heading(parsed.mag.t, level, legs)
-        truth = np.degrees(flight.heading)
-        error = wrap_degrees(true_heading(tilt_compensated_heading(
-            vectors, flight.roll, flight.pitch), decl) - truth)
-        means = []
-        for leg in legs:
-            sel = (parsed.mag.t >= leg.start) & (parsed.mag.t <= leg.end)
-            means.append(float(np.mean(error[sel])))
+        with tempfile.TemporaryDirectory() as scratch:
+            path = Path(scratch) / "LOG00001.TXT"
+            path.write_bytes(flight.log())
+            run = calibrate_card(path)
+        analysis, alignment = run.heading, run.heading.alignment
+        truth_t = flight.t + flight.start_seconds_of_day
+        roll = np.interp(run.t, truth_t, flight.roll)
+        pitch = np.interp(run.t, truth_t, flight.pitch)
+        truth = np.interp(run.t, truth_t, np.degrees(np.unwrap(flight.heading)))
+        error = wrap_degrees(true_heading(tilt_compensated_heading(run.vectors, roll, pitch),
+                                          analysis.declination) - truth)
+        means = [float(np.mean(error[(run.t >= leg.start) & (run.t <= leg.end)]))
+                 for leg in analysis.legs]
         constant = float(np.mean(means))            # equal numbers of legs each way
-        row = {"mounting_yaw_deg": yaw, "legs": len(legs), "true_offset_deg": constant,
-               "found_offset_deg": alignment.offset, "found_std_deg": alignment.offset_std}
+        row = {"mounting_yaw_deg": yaw, "legs": len(analysis.legs),
+               "true_offset_deg": constant, "found_offset_deg": alignment.offset,
+               "found_std_deg": alignment.offset_std}
         rows.append(row)
         print(f"heading: mounting yaw {yaw:+.1f} deg: offset true {constant:+.2f}, found "
-              f"{alignment.offset:+.2f} +- {alignment.offset_std:.2f} deg from {len(legs)} legs")
+              f"{alignment.offset:+.2f} +- {alignment.offset_std:.2f} deg from "
+              f"{len(analysis.legs)} legs")
     return rows
 
 
@@ -263,15 +262,19 @@ def main(argv=None):
     from maglog.calib.logparse import parse_log
     hour = make_flight(coverage="uav", seconds=3600, rate=50, seed=9)
     text = hour.log(mag_rate=50)
-    start = time.perf_counter()
-    parsed = parse_log(text)
-    ces = parsed.cesium
-    reference = np.interp(parsed.mag.t, ces.t, ces.field)
-    keep = np.isfinite(reference)
-    result = calibrate_scalar(parsed.mag.b[keep], reference[keep])
-    t_hour = time.perf_counter() - start
+    hour_times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        parsed = parse_log(text)
+        ces = parsed.cesium
+        reference = np.interp(parsed.mag.t, ces.t, ces.field)
+        keep = np.isfinite(reference)
+        result = calibrate_scalar(parsed.mag.b[keep], reference[keep])
+        hour_times.append(time.perf_counter() - start)
+    t_hour = min(hour_times)
     print(f"one-hour 50 Hz flight ({len(parsed.mag.b)} samples) from log text to "
-          f"parameters: {t_hour:.2f} s (RMS {result.rms:.2f} nT)")
+          f"parameters: best of 3 {t_hour:.2f} s, worst {max(hour_times):.2f} s "
+          f"(RMS {result.rms:.2f} nT)")
 
     ellipsoids, peers = ellipsoid_section(flights)
     headings = heading_section()
@@ -281,6 +284,7 @@ def main(argv=None):
                  ellipsoid=ellipsoids, peers_venv=peers, heading=headings,
                  accuracy=accuracy, lm_2000_seconds=t_lm, pso_stage=pso_row,
                  hour_flight={"samples": int(len(parsed.mag.b)), "seconds": t_hour,
+                              "worst_seconds": max(hour_times),
                               "rms_nT": result.rms})
 
 
