@@ -431,6 +431,51 @@ def _heading_lines(analysis, t):
     return lines + [""]
 
 
+def _html(lines):
+    """The report's Markdown subset as HTML: headings, lists, tables, code blocks, quotes
+    and images."""
+    out, table, code = [], [], None
+
+    def cells(row):
+        return [html.escape(c.strip()) for c in row.strip().strip("|").split("|")]
+
+    def flush_table():
+        if table:
+            head, *rows = [r for r in table if not set(r) <= set("|-: ")]
+            out.append("<table><tr>" + "".join(f"<th>{c}</th>" for c in cells(head))
+                       + "</tr>" + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in cells(r))
+                                           + "</tr>" for r in rows) + "</table>")
+            table.clear()
+
+    for line in lines:
+        if code is not None:
+            if line.startswith("```"):
+                out.append("<pre>" + html.escape("\n".join(code)) + "</pre>")
+                code = None
+            else:
+                code.append(line)
+            continue
+        if line.startswith("|"):
+            table.append(line)
+            continue
+        flush_table()
+        if line.startswith("```"):
+            code = []
+        elif line.startswith("#"):
+            level = len(line) - len(line.lstrip("#"))
+            out.append(f"<h{level}>{html.escape(line[level:].strip())}</h{level}>")
+        elif line.startswith("!["):
+            out.append(f'<p><img src="{html.escape(line[line.index("(") + 1:-1])}"></p>')
+        elif line.startswith("- "):
+            out.append(f"<li>{html.escape(line[2:])}</li>")
+        elif line.startswith("> "):
+            out.append(f"<blockquote>{html.escape(line[2:])}</blockquote>")
+        elif line:
+            out.append(f"<p>{html.escape(line)}</p>")
+    flush_table()
+    return "\n".join(out)
+
+
 def write_report(run, out_dir):
     """Markdown, HTML, PNGs and a JSON of the parameters; returns the paths."""
     out = Path(out_dir)
@@ -474,9 +519,9 @@ def write_report(run, out_dir):
     lines += [f"![{key}]({path.name})" for key, path in files.items()]
     markdown = "\n".join(lines) + "\n"
     (out / "report.md").write_text(markdown)
-    body = "".join(f"<p>{html.escape(line)}</p>" if not line.startswith("![") else
-                   f'<img src="{line[line.index("(") + 1:-1]}">' for line in lines if line)
-    (out / "report.html").write_text(f"<!doctype html><meta charset=utf-8>"
-                                     f"<title>Calibration</title>{body}")
+    (out / "report.html").write_text(
+        "<!doctype html><meta charset=utf-8><title>Calibration</title>"
+        "<style>table{border-collapse:collapse}td,th{border:1px solid #bbb;"
+        "padding:2px 6px}</style>" + _html(lines))
     return {"markdown": out / "report.md", "html": out / "report.html",
             "json": out / "parameters.json", **files}

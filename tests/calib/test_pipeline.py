@@ -107,6 +107,9 @@ def test_heading_alignment_and_error_against_the_attitude(survey, tmp_path, caps
     assert (out / "heading_error.png").stat().st_size > 0
     report = (out / "report.md").read_text()
     assert "## Heading" in report and "heading - course" in report
+    page = (out / "report.html").read_text()
+    assert "<h2>Heading</h2>" in page and page.count("<table>") == 2
+    assert '<img src="heading_error.png">' in page and "<pre>" in page
     # Without the attitude the same log is aligned from level-flight headings alone.
     assert main(["calibrate", str(survey / "LOG00002.TXT"), "--out", str(tmp_path / "r2")]) == 0
     level = json.loads((tmp_path / "r2" / "parameters.json").read_text())["heading"]
