@@ -151,18 +151,24 @@ def straight_legs(t, course_deg, speed, *, altitude_t=None, altitude=None, min_s
                         speed=float(np.mean(speed[inside])), climb=climb,
                         records=int(inside.size)))
 
+    rad = np.radians(course_deg)
+    sin_sum = cos_sum = 0.0                         # the run's mean course, kept as it grows
     for i in np.argsort(t, kind="stable"):
         if not usable[i]:
             close(run)
             run = []
             continue
         if run:
-            mean = _circular_mean_deg(course_deg[run])
+            mean = np.degrees(np.arctan2(sin_sum, cos_sum))
             if (t[i] - t[run[-1]] > max_gap
                     or abs(wrap_degrees(course_deg[i] - mean)) > max_course_spread):
                 close(run)
                 run = []
+        if not run:
+            sin_sum = cos_sum = 0.0
         run.append(i)
+        sin_sum += np.sin(rad[i])
+        cos_sum += np.cos(rad[i])
     close(run)
     return legs
 

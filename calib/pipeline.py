@@ -45,10 +45,14 @@ class CalibrationRun:
     reference: str
     method: str
     result: object
-    calibrated: np.ndarray     # |calibrated field|, nT
     parsed: object
-    vectors: np.ndarray = None # calibrated field vectors (N, 3), nT
-    heading: "HeadingAnalysis" = None
+    vectors: np.ndarray        # calibrated field vectors (N, 3), nT
+    heading: "HeadingAnalysis"
+
+    @property
+    def calibrated(self):
+        """|calibrated field|, nT."""
+        return np.linalg.norm(self.vectors, axis=1)
 
     @property
     def residual(self):
@@ -326,8 +330,7 @@ def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None):
         result = calibrate_scalar(b, r, method=method, seed=seed)
         vectors = apply_scalar(result.K, result.c, b)
     return CalibrationRun(log_name=name, t=t, b=b, r=r, reference=reference, method=method,
-                          result=result, calibrated=np.linalg.norm(vectors, axis=1),
-                          parsed=parsed, vectors=vectors,
+                          result=result, parsed=parsed, vectors=vectors,
                           heading=_heading(parsed, t, use_time, vectors, attitude))
 
 
