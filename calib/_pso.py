@@ -9,18 +9,25 @@ Ref: D. Bratton and J. Kennedy, "Defining a Standard for Particle Swarm Optimiza
      c1 = c2 = 2.05, local ring topology (each particle's neighbourhood is itself and its
      two ring neighbours), velocities clamped to the search range, seeded initialisation
      uniform in the search box.
+
+``topology="gbest"`` replaces the ring by the global best (every particle is drawn towards
+the swarm's best), the other topology of that paper, and the one of pyswarms'
+``GlobalBestPSO``: the benchmark compares like with like.
 """
 
 import numba
 import numpy as np
 
 
-__all__ = ["unpack", "cost_numpy", "cost_numba", "pso"]
+__all__ = ["unpack", "cost_numpy", "cost_numba", "pso", "TOPOLOGIES"]
 
 #: Parameter vector: K's upper triangle (k11, k12, k13, k22, k23, k33), then c (3).
 N_PARAMS = 9
 CHI = 0.72984
 C1 = C2 = 2.05
+#: Neighbourhoods: "ring" (itself and its two neighbours by index, fixed) or "gbest" (the
+#: whole swarm).
+TOPOLOGIES = ("ring", "gbest")
 
 
 def unpack(p):
@@ -69,10 +76,36 @@ def cost_numba(params, b, r):
     return out
 
 
-def pso(cost, lower, upper, *, particles=40, iterations=300, seed=0, threshold=None):
+def ring_neighbours(particles):
+    """(P, 3) indices of each particle's ring neighbourhood: i - 1, i, i + 1 (wrapping)."""
+    ring = np.arange(particles)
+    return np.stack([np.roll(ring, 1), ring, np.roll(ring, -1)], axis=1)
+
+
+def social_attractors(pbest, pcost, topology, neighbours=None):
+    """The position each particle is drawn towards besides its own best: the best personal
+    best of its ring neighbourhood, or the swarm's best for "gbest"."""
+    if topology == "gbest":
+        return np.broadcast_to(pbest[np.argmin(pcost)], pbest.shape)
+    if neighbours is None:
+        neighbours = ring_neighbours(len(pcost))
+    rows = np.arange(len(pcost))
+    return pbest[neighbours[rows, np.argmin(pcost[neighbours], axis=1)]]
+
+
+def pso(cost, lower, upper, *, particles=40, iterations=300, seed=0, threshold=None,
+        topology="ring"):
     """Minimise ``cost(params (P, 9)) -> (P,)`` in the box [lower, upper].
 
+    ``topology`` is "ring" (Bratton and Kennedy's standard: each particle follows the best of
+    itself and its two index neighbours) or "gbest" (every particle follows the swarm's
+    best).
+
     Returns (best parameters, best cost, iterations run, history of the best cost)."""
+    if topology not in TOPOLOGIES:
+        raise ValueError(f"Topology must be one of {', '.join(TOPOLOGIES)}, not {topology!r}")
+    if not isinstance(particles, (int, np.integer)) or particles < 3:
+        raise ValueError(f"Particles must be an integer of at least 3, not {particles!r}")
     rng = np.random.default_rng(seed)
     lower, upper = np.asarray(lower, float), np.asarray(upper, float)
     span = upper - lower
@@ -80,13 +113,11 @@ def pso(cost, lower, upper, *, particles=40, iterations=300, seed=0, threshold=N
     v = (rng.random((particles, lower.size)) - 0.5) * span
     f = cost(x)
     pbest, pcost = x.copy(), f.copy()
-    ring = np.arange(particles)
-    neighbours = np.stack([np.roll(ring, 1), ring, np.roll(ring, -1)], axis=1)
+    neighbours = ring_neighbours(particles)
     history = []
     it = 0
     for it in range(1, iterations + 1):
-        local = neighbours[np.arange(particles), np.argmin(pcost[neighbours], axis=1)]
-        lbest = pbest[local]
+        lbest = social_attractors(pbest, pcost, topology, neighbours)
         r1, r2 = rng.random(x.shape), rng.random(x.shape)
         v = CHI * (v + C1 * r1 * (pbest - x) + C2 * r2 * (lbest - x))
         np.clip(v, -span, span, out=v)
