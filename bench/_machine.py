@@ -1,20 +1,35 @@
-"""What a benchmark ran on: machine, tool versions and the state of the work tree."""
+"""What a benchmark ran on: machine, tool versions and the state of the work tree.
+
+Importing this module takes a snapshot of the work tree and the load average: that is the
+state the benchmark started from. :func:`write_report` takes a second snapshot when the
+figures are written, records both, and says which paths changed while the benchmark ran
+(several people share this tree). :func:`provenance_line` renders a report's provenance as
+the one line bench/RESULTS.md carries under each table (``bench/provenance.py`` checks it).
+"""
 
 import contextlib
 import datetime
 import hashlib
+import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 from importlib import metadata
 from pathlib import Path
 
 
-__all__ = ["REPO", "now", "load", "machine", "packages", "command_version", "work_tree",
-           "command_line", "scratch_dir", "write_report"]
+__all__ = ["REPO", "OUTPUTS", "now", "load", "machine", "packages", "command_version",
+           "work_tree", "command_line", "scratch_dir", "write_report", "provenance_line",
+           "PROVENANCE_PREFIX"]
 
 REPO = Path(__file__).resolve().parent.parent
+#: The benchmarks' own outputs: not source that ran, so left out of the source hash (they
+#: still appear in ``git status --porcelain`` when modified).
+OUTPUTS = ("bench/results/",)
+#: How every provenance line in bench/RESULTS.md starts: ``Provenance (<json path>): ...``.
+PROVENANCE_PREFIX = "Provenance ("
 
 
 def now():
@@ -87,27 +102,57 @@ def command_version(*argv):
     return None
 
 
+def _git(*args):
+    try:
+        proc = subprocess.run(["git", *args], cwd=REPO, capture_output=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return proc.stdout if proc.returncode == 0 else None
+
+
+def _file_digests():
+    """{path: sha256 of its bytes in the work tree (None if deleted)} for every tracked
+    file and every untracked file git does not ignore, benchmark outputs left out."""
+    listing = _git("ls-files", "-z", "--cached", "--others", "--exclude-standard")
+    if listing is None:
+        return None
+    digests = {}
+    for name in sorted(set(listing.decode().split("\0")) - {""}):
+        if name.startswith(OUTPUTS):
+            continue
+        path = REPO / name
+        if path.is_symlink():
+            digests[name] = hashlib.sha256(os.readlink(path).encode()).hexdigest()
+        elif path.is_file():
+            digests[name] = hashlib.sha256(path.read_bytes()).hexdigest()
+        else:
+            digests[name] = None                       # tracked, deleted in the work tree
+    return digests
+
+
+def _tree_hash(digests):
+    total = hashlib.sha256()
+    for name, digest in digests.items():
+        total.update(f"{name}\0{digest or '-'}\n".encode())
+    return total.hexdigest()
+
+
 def work_tree():
-    """Commit and uncommitted changes of the gateware and simulation sources measured."""
-    def git(*args):
-        try:
-            return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True,
-                                  timeout=30).stdout
-        except (OSError, subprocess.TimeoutExpired):
-            return ""
-    changed = [line for line in git("status", "--porcelain", "--", "hw", "sim").splitlines()
-               if line]
-    # Identifies the uncommitted state: the diff of tracked files plus untracked contents.
-    digest = hashlib.sha256(git("diff", "HEAD", "--", "hw", "sim").encode())
-    for line in changed:
-        if line.startswith("??"):
-            path = REPO / line[3:]
-            for file in sorted(path.rglob("*") if path.is_dir() else [path]):
-                if file.is_file() and "__pycache__" not in file.parts:
-                    digest.update(file.read_bytes())
-    return {"commit": git("rev-parse", "HEAD").strip() or None,
-            "uncommitted_hw_sim": changed,
-            "uncommitted_sha256": digest.hexdigest()[:16] if changed else None}
+    """The whole work tree: commit, `git status --porcelain` (every line), and the source
+    hash, a sha256 over the path and contents of every tracked and untracked, not ignored
+    file as it is on disk (bench/results/ left out)."""
+    head = _git("rev-parse", "HEAD")
+    status = _git("status", "--porcelain", "--untracked-files=all")
+    digests = _file_digests()
+    return {
+        "commit": head.decode().strip() if head else None,
+        "status_porcelain": None if status is None else
+        [line for line in status.decode().splitlines() if line],
+        "source_sha256": None if digests is None else _tree_hash(digests),
+        "source_files": None if digests is None else len(digests),
+        "source_sha256_excludes": list(OUTPUTS),
+        "_digests": digests,
+    }
 
 
 def command_line(argv):
@@ -117,27 +162,84 @@ def command_line(argv):
         script = script.relative_to(REPO)
     except ValueError:
         pass
-    python = Path(sys.executable)
+    python = Path(os.path.abspath(sys.executable))      # not resolved: the venv's link
     try:
         python = python.relative_to(REPO)
     except ValueError:
         pass
-    return " ".join([str(python), str(script), *argv])
+    return shlex.join([str(python), str(script), *argv])
+
+
+#: The state the benchmark started from (this module is imported at its start).
+_START = {"date": now(), "load": load(), "tree": work_tree()}
+
+
+def _public(tree):
+    return {key: value for key, value in tree.items() if not key.startswith("_")}
 
 
 def write_report(path, benchmark, argv, load_start, tools, **fields):
-    """Write a benchmark's JSON: what ran, on what machine and tree, and its figures."""
-    import json
-    import sys
+    """Write a benchmark's JSON: what ran, on what machine and tree, and its figures.
+
+    ``argv`` is the argument list the script parsed (None: ``sys.argv[1:]``); ``load_start``
+    the load average the caller took before measuring (None: the one taken on import)."""
+    start, end = _START["tree"], work_tree()
+    changed = None
+    if start["_digests"] is not None and end["_digests"] is not None:
+        changed = sorted(name for name in set(start["_digests"]) | set(end["_digests"])
+                         if start["_digests"].get(name, "absent")
+                         != end["_digests"].get(name, "absent"))
     report = {
-        "benchmark": benchmark, "date": now(),
-        "command": command_line(sys.argv[1:] if argv is None else argv),
-        "machine": machine(), "load_average": {"start": load_start, "end": load()},
-        "tools": tools, "work_tree": work_tree(), **fields,
+        "benchmark": benchmark,
+        "date": _START["date"], "date_end": now(),
+        "command": command_line(sys.argv[1:] if argv is None else list(argv)),
+        "command_exact": {"argv": [sys.executable, *sys.argv], "cwd": os.getcwd()},
+        "machine": machine(),
+        "load_average": {"start": load_start if load_start is not None else _START["load"],
+                         "end": load()},
+        "tools": tools,
+        "work_tree": dict(_public(start),
+                          end={"commit": end["commit"],
+                               "source_sha256": end["source_sha256"],
+                               "changed_during_run": changed}),
+        **fields,
     }
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(report, indent=2, default=str) + "\n")
     print(f"written {path}")
+    return report
+
+
+def provenance_line(report, source=None):
+    """The one-line provenance of a benchmark report (a dict read from its JSON):
+
+    ``Provenance (<source>): commit abc1234, clean | N uncommitted paths, source sha256
+    0123456789ab; 2026-11-24T01:30:00+00:00; load 0.42→1.10; `command` ``
+
+    Everything in it comes from the JSON; bench/RESULTS.md carries it under each table."""
+    tree = report.get("work_tree", {})
+    commit = (tree.get("commit") or "unknown")[:7]
+    status = tree.get("status_porcelain")
+    if status is None:
+        state = "uncommitted state not recorded"
+    elif not status:
+        state = "clean"
+    else:
+        state = f"{len(status)} uncommitted path{'s' if len(status) != 1 else ''}"
+    digest = tree.get("source_sha256")
+    source_hash = f"source sha256 {digest[:12]}" if digest else "no source hash"
+    changed = (tree.get("end") or {}).get("changed_during_run")
+    during = "" if not changed else \
+        f" ({len(changed)} path{'s' if len(changed) != 1 else ''} changed during the run)"
+    loads = report.get("load_average") or {}
+
+    def one(value):
+        return "?" if not value else f"{value[0]:.2f}"
+    where = f" ({source})" if source else ""
+    return (f"Provenance{where}: commit `{commit}`, {state}, {source_hash}"
+            f"{during}; {report.get('date', '?')}; load {one(loads.get('start'))}→"
+            f"{one(loads.get('end'))}; `{report.get('command', '?')}`")
 
 
 @contextlib.contextmanager
