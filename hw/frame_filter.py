@@ -91,12 +91,16 @@ class FrameFilter(wiring.Component):
         if kind == ChannelKind.CESIUM:
             max_frame = arch.CESIUM_MAX_FRAME
         elif (not isinstance(max_frame, int) or
-                not 1 + arch.CHECKED_MIN_BODY + 1 <= max_frame <= 1024):
+                not 1 + arch.CHECKED_MIN_BODY + 1 <= max_frame <= arch.MAX_FRAME_LIMIT):
             raise ValueError(f"Maximum frame length must be an integer from "
-                             f"{1 + arch.CHECKED_MIN_BODY + 1} to 1024, not {max_frame!r}")
+                             f"{1 + arch.CHECKED_MIN_BODY + 1} to {arch.MAX_FRAME_LIMIT}, "
+                             f"not {max_frame!r}")
         if not isinstance(fifo_depth, int) or fifo_depth < max_frame:
             raise ValueError(f"FIFO depth must hold at least one frame of {max_frame} bytes, "
                              f"not {fifo_depth!r}")
+        if fifo_depth > arch.MAX_FIFO_DEPTH:
+            raise ValueError(f"FIFO depth must be at most {arch.MAX_FIFO_DEPTH} bytes (the "
+                             f"block RAM of the target), not {fifo_depth!r}")
         if not isinstance(counter_width, int) or not 1 <= counter_width <= 64:
             raise ValueError(f"Counter width must be an integer from 1 to 64, "
                              f"not {counter_width!r}")

@@ -66,7 +66,7 @@ class UartRx(wiring.Component):
         Received characters. There is no flow control on a serial line: a character not
         taken before the next one is complete is replaced, and the new one flags ``overrun``.
     """
-    def __init__(self, *, divisor_bits=16, divisor_init=1):
+    def __init__(self, *, divisor_bits=arch.DIVISOR_BITS, divisor_init=1):
         if not isinstance(divisor_bits, int) or divisor_bits < 1:
             raise TypeError(f"Divisor width must be a positive integer, not {divisor_bits!r}")
         if (not isinstance(divisor_init, int) or divisor_init < 1 or

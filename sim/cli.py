@@ -1,19 +1,63 @@
-"""The ``maglog`` command line."""
+"""The ``maglog`` command line.
+
+Conventions: progress goes to standard error, results (tables, summaries, written paths) to
+standard output; a usage error is one line and exit status 2; a value the design cannot take,
+a refusal of the operating system or a failed simulation is one line and exit status 1. No
+path ends in a traceback.
+"""
 
 import argparse
+import errno
 import json
+import math
+import os
 import sys
 import time
 from pathlib import Path
 
 from ..hw.arch import frames as arch_frames
+from ..hw.arch import uart as arch_uart
 
 
 __all__ = ["main"]
 
+#: Seeds are 32-bit unsigned integers (numpy's SeedSequence takes any non-negative integer;
+#: this is the range that reproduces everywhere, also as a C ``uint32_t``).
+SEED_MAX = (1 << 32) - 1
+#: The demo flight's length: an hour is already hours of Icarus time at the real baud rate.
+DEMO_SECONDS_MAX = 3600.0
+#: A system clock the gateware can be generated for: Cyclone IV E runs its logic well below
+#: 500 MHz; below 1 kHz no UART rate is reachable.
+CLK_FREQ_RANGE = (1e3, 500e6)
+#: Simulated clock cycles a demo runs by default before it refuses (about an hour and a half
+#: on Icarus at ~200k cycles/s); ``--max-cycles`` raises it.
+DEMO_MAX_CYCLES = 10**9
+#: Rough simulation rates (cycles/s, bench/RESULTS.md) for the demo's time estimate.
+BACKEND_RATE = {"amaranth": 60e3, "icarus": 200e3, "verilator": 400e3}
+
 
 class CliError(Exception):
     """A problem the user can fix; printed without a traceback."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (the usage itself is under ``--help``)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _duration(seconds):
+    """A rough duration in the unit that reads best."""
+    if seconds >= 3600:
+        return f"{seconds / 3600:.3g} h"
+    if seconds >= 60:
+        return f"{seconds / 60:.3g} min"
+    return f"{max(seconds, 1):.0f} s"
+
+
+def _progress(text):
+    print(text, file=sys.stderr, flush=True)
 
 
 def _channels_arg(text):
@@ -28,31 +72,67 @@ def _channels_arg(text):
             raise argparse.ArgumentTypeError(
                 f"channel kind must be one of {', '.join(k.value for k in ChannelKind)}, "
                 f"not {kind.strip()!r}") from None
-        if not sep or not baud.strip().isdigit() or int(baud) <= 0:
+        baud = baud.strip()
+        if not sep or not baud.isascii() or not baud.isdigit() or len(baud) > 9 or int(baud) <= 0:
             raise argparse.ArgumentTypeError(
-                f"each channel is KIND:BAUD with a positive baud rate, not {item!r}")
+                f"each channel is KIND:BAUD with a baud rate from 1 to 999999999, not {item!r}")
         configs.append(ChannelConfig(kind, int(baud)))
     return tuple(configs)
 
 
-def _positive_int(text):
-    try:
-        value = int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}")
-    return value
+def _int_in(low, high):
+    """An argparse type: an integer (decimal, 0x…, 0o…, 0b…) from ``low`` to ``high``."""
+    def parse(text):
+        try:
+            value = int(text, 0)
+        except ValueError:
+            value = None
+        if value is None or not low <= value <= high:
+            raise argparse.ArgumentTypeError(
+                f"expected an integer from {low} to {high}, not {text!r}")
+        return value
+    return parse
 
 
-def _positive_float(text):
+def _float_in(low, high, *, low_open=False):
+    """An argparse type: a finite number in [low, high] (or (low, high])."""
+    def parse(text):
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        above = value > low if low_open else value >= low
+        if not (above and value <= high):
+            bracket = "(" if low_open else "["
+            raise argparse.ArgumentTypeError(
+                f"expected a number in {bracket}{low:g}, {high:g}], not {text!r}")
+        return value
+    return parse
+
+
+def _out_dir(path):
+    """Make the output folder ``path`` (parents too) and check that files can be written in
+    it, before any long work; raises :class:`CliError` with the reason."""
+    path = Path(path)
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}")
-    return value
+        if path.exists() and not path.is_dir():
+            raise CliError(f"{path}: exists and is not a folder (give --out a folder)")
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".maglog-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as error:
+        raise CliError(_os_message(error, path)) from None
+    return path
+
+
+def _os_message(error, path=None):
+    """One line for an :class:`OSError`: the path and the system's reason."""
+    where = error.filename if error.filename is not None else path
+    reason = error.strerror or str(error)
+    if error.errno == errno.ENOSPC:
+        reason = "no space left on the device"
+    return f"{where}: {reason}" if where is not None else reason
 
 
 def _front_end_from(args):
@@ -67,15 +147,22 @@ def _front_end_from(args):
 def _write_output(output, text, what):
     """Write ``text`` to the file ``output`` (``-``: standard output)."""
     if output == "-":
-        sys.stdout.write(text)
+        if sys.stdout is None:
+            raise CliError("standard output is closed; write to a file with -o FILE")
+        try:
+            sys.stdout.write(text)
+            sys.stdout.flush()
+        except OSError as error:
+            raise CliError(f"cannot write to standard output: {error.strerror or error}") \
+                from None
         return
     path = Path(output)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text)
     except OSError as error:
-        raise CliError(f"cannot write {path}: {error.strerror}") from None
-    print(f"wrote {path} ({what})", file=sys.stderr)
+        raise CliError(f"cannot write {_os_message(error, path)}") from None
+    _progress(f"wrote {path} ({what})")
 
 
 def _cmd_hdl_verilog(args):
@@ -105,24 +192,33 @@ def _table(header, rows):
 
 def _cmd_demo(args):
     from ..hw.frontend import DEFAULT_CHANNELS, generate_verilog
-    from .frontend_run import ChannelStimulus, FrontEndBench
+    from .frontend_run import ChannelStimulus, FrontEndBench, _drain_cycles
     from .reference import Kind, reference_filter
     from .streams import demo_streams
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = _out_dir(args.out)
     channels = DEFAULT_CHANNELS
     names = ("mag", "gps", "cesium")
     streams = demo_streams(seconds=args.seconds, seed=args.seed)
-    print(f"[1/3] demo flight: {args.seconds:g} s, seed {args.seed}: "
-          + ", ".join(f"{name} {len(streams[name])} bytes" for name in names))
+    _progress(f"[1/3] demo flight: {args.seconds:g} s, seed {args.seed}: "
+              + ", ".join(f"{name} {len(streams[name])} bytes" for name in names))
+    stimuli = [ChannelStimulus(divisor=args.divisor, data=streams[name]) for name in names]
+    # The lines run in parallel: the longest one, then the FIFOs' drain, sets the length.
+    estimate = max(s.line_cycles() for s in stimuli) + _drain_cycles(stimuli, 1024)
+    seconds = estimate / BACKEND_RATE[args.backend]
+    if estimate > args.max_cycles:
+        raise CliError(f"this demo needs about {estimate:.3g} simulated clock cycles "
+                       f"(~{_duration(seconds)} on {args.backend}), more than --max-cycles "
+                       f"{args.max_cycles}; shorten --seconds, lower --divisor, or raise "
+                       f"--max-cycles")
 
     bench = FrontEndBench(channels, backend=args.backend, build_dir=out / args.backend)
     verilog_path = out / "maglog_frontend.v"
     verilog_path.write_text(generate_verilog(bench.make_dut()))
-    print(f"[2/3] front end Verilog: {verilog_path}; simulating on {args.backend} "
-          f"(bit time compressed to {16 * args.divisor} clock cycles)")
-    stimuli = [ChannelStimulus(divisor=args.divisor, data=streams[name]) for name in names]
+    _progress(f"[2/3] front end Verilog: {verilog_path}; simulating on {args.backend} "
+              f"(bit time compressed to {16 * args.divisor} clock cycles): about "
+              f"{estimate:,} cycles, ~{_duration(seconds)} at "
+              f"~{BACKEND_RATE[args.backend] / 1e3:.0f}k cycles/s")
     start = time.perf_counter()
     try:
         result = bench.run(stimuli)
@@ -130,6 +226,7 @@ def _cmd_demo(args):
         raise CliError(f"the {args.backend} simulation failed ({error}); "
                        f"its log is under {out / args.backend}") from None
     elapsed = time.perf_counter() - start
+    _progress(f"[3/3] {result.cycles:,} cycles in {elapsed:.1f} s")
 
     rows = []
     agree = True
@@ -139,7 +236,6 @@ def _cmd_demo(args):
         agree &= ref.frames == result.frames_of(k) and ref.counters == counters
         rows.append([f"{name} ({config.kind.value})", len(streams[name])] +
                     [counters[c] for c in arch_frames.COUNTER_NAMES])
-    print(f"[3/3] {result.cycles} cycles in {elapsed:.1f} s\n")
     print(_table(["channel", "bytes"] + list(arch_frames.COUNTER_NAMES), rows))
     print(f"\nflush events (GGA with a fix): {result.flushes}")
     print(f"reference filter agrees frame for frame and count for count: "
@@ -149,7 +245,7 @@ def _cmd_demo(args):
     log_path.write_bytes(b"".join(frame for _, frame in result.frames))
     summary = {
         "backend": args.backend, "seconds": args.seconds, "seed": args.seed,
-        "cycles": result.cycles,
+        "divisor": args.divisor, "cycles": result.cycles,
         "channels": [{"name": n, "kind": c.kind.value, "bytes": len(streams[n]),
                       "counters": result.counters[k]}
                      for k, (c, n) in enumerate(zip(channels, names))],
@@ -177,19 +273,26 @@ def _reference_arg(text):
 def _cmd_calibrate(args):
     from ..calib.card import CardError
     from ..calib.pipeline import CalibrationError, calibrate_card, write_report
-    if not Path(args.card).exists():
-        raise CliError(f"{args.card}: no such file")
-    print(f"[1/3] reading {args.card}", file=sys.stderr)
+    card = Path(args.card)
+    if not card.exists():
+        raise CliError(f"{card}: no such file")
+    if card.is_dir():
+        raise CliError(f"{card}: is a folder, not a card image or log")
+    out = _out_dir(args.out)        # before the fit: a bad --out is said at once
+    _progress(f"[1/3] reading {card}")
     try:
-        run = calibrate_card(args.card, ref=args.ref, method=args.method, seed=args.seed,
+        run = calibrate_card(card, ref=args.ref, method=args.method, seed=args.seed,
                              attitude=args.attitude)
     except (CardError, CalibrationError) as error:
         raise CliError(str(error)) from None
-    print(f"[2/3] {run.log_name}: {len(run.b)} samples calibrated ({run.method}, "
-          f"reference {run.reference})", file=sys.stderr)
-    paths = write_report(run, args.out)
+    _progress(f"[2/3] {run.log_name}: {len(run.b)} samples calibrated ({run.method}, "
+              f"reference {run.reference})")
+    try:
+        paths = write_report(run, out)
+    except CalibrationError as error:
+        raise CliError(str(error)) from None
+    _progress(f"[3/3] report: {paths['markdown']}")
     summary = run.summary()
-    print(f"[3/3] report: {paths['markdown']}\n")
     rows = [["total-field RMS (nT)", f"{summary['rms_before_nT']:.2f}",
              f"{summary['rms_after_nT']:.2f}"]]
     heading = run.heading.as_dict(run.t)
@@ -206,6 +309,7 @@ def _cmd_calibrate(args):
               "straight, level legs (removed from the aligned headings)")
     for warning in getattr(run.result, "warnings", []):
         print(f"warning: {warning}")
+    print(f"report: {paths['markdown']}")
     print(f"parameters: {paths['json']}")
 
 
@@ -213,7 +317,7 @@ def _parser():
     from ..hw.frontend import DEFAULT_CHANNELS
     from .frontend_run import BACKENDS
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="maglog", description="UAV geomagnetic survey logger: gateware, simulation, "
                                    "calibration.")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -226,15 +330,16 @@ def _parser():
     verilog.add_argument("--channels", type=_channels_arg, default=DEFAULT_CHANNELS,
                          help="channels in uart_rx order as KIND:BAUD,... with KIND one of "
                               "pmag, nmea, cesium (default: pmag:115200,nmea:9600,cesium:9600)")
-    verilog.add_argument("--clk-freq", type=_positive_float, default=50e6,
+    verilog.add_argument("--clk-freq", type=_float_in(*CLK_FREQ_RANGE), default=50e6,
                          help="system clock in Hz, for the reset baud divisors "
-                              "(default: 50e6)")
-    verilog.add_argument("--max-frame", type=_positive_int,
+                              f"({CLK_FREQ_RANGE[0]:g} to {CLK_FREQ_RANGE[1]:g}; default: 50e6)")
+    verilog.add_argument("--max-frame", type=_int_in(1, arch_frames.MAX_FRAME_LIMIT),
                          default=arch_frames.DEFAULT_MAX_FRAME,
                          help="longest NMEA/PMAG frame in bytes (default: %(default)s)")
-    verilog.add_argument("--fifo-depth", type=_positive_int, default=1024,
-                         help="frame FIFO bytes per channel, a power of two "
-                              "(default: %(default)s)")
+    verilog.add_argument("--fifo-depth", type=_int_in(2, arch_frames.MAX_FIFO_DEPTH),
+                         default=1024,
+                         help="frame FIFO bytes per channel, a power of two up to "
+                              f"{arch_frames.MAX_FIFO_DEPTH} (default: %(default)s)")
     verilog.set_defaults(func=_cmd_hdl_verilog)
 
     regmap = hdl_commands.add_parser(
@@ -255,7 +360,8 @@ def _parser():
     calibrate.add_argument("--method", choices=("pso", "lm", "ellipsoid"), default="pso",
                            help="PSO then LM, LM alone, or an ellipsoid fit "
                                 "(default: %(default)s)")
-    calibrate.add_argument("--seed", type=int, default=0, help="PSO seed (default: 0)")
+    calibrate.add_argument("--seed", type=_int_in(0, SEED_MAX), default=0,
+                           help=f"PSO seed, 0 to {SEED_MAX} (default: 0)")
     calibrate.add_argument("--attitude", metavar="CSV",
                            help="known attitude (t,roll_deg,pitch_deg,heading_deg; t in s "
                                 "since 00:00 UTC of the log's date): tilt-compensates the "
@@ -268,11 +374,18 @@ def _parser():
         "demo", help="push the built-in demo flight's serial streams through the front end")
     demo.add_argument("--backend", choices=BACKENDS, default="icarus",
                       help="simulator (default: %(default)s)")
-    demo.add_argument("--seconds", type=_positive_float, default=2.0,
-                      help="length of the demo flight (default: %(default)s)")
-    demo.add_argument("--seed", type=int, default=1, help="stream seed (default: 1)")
-    demo.add_argument("--divisor", type=_positive_int, default=1,
-                      help="baud divisor in simulation: 16*DIVISOR clock cycles a bit "
+    demo.add_argument("--seconds", type=_float_in(0, DEMO_SECONDS_MAX, low_open=True),
+                      default=2.0,
+                      help=f"length of the demo flight, at most {DEMO_SECONDS_MAX:g} "
+                           "(default: %(default)s)")
+    demo.add_argument("--seed", type=_int_in(0, SEED_MAX), default=1,
+                      help=f"stream seed, 0 to {SEED_MAX} (default: %(default)s)")
+    divisor_max = (1 << arch_uart.DIVISOR_BITS) - 1
+    demo.add_argument("--divisor", type=_int_in(1, divisor_max), default=1,
+                      help=f"baud divisor in simulation, 1 to {divisor_max}: 16*DIVISOR "
+                           "clock cycles a bit (default: %(default)s)")
+    demo.add_argument("--max-cycles", type=_int_in(1, 10**15), default=DEMO_MAX_CYCLES,
+                      help="refuse a demo estimated to need more simulated clock cycles "
                            "(default: %(default)s)")
     demo.add_argument("--out", default="build/demo",
                       help="output folder (default: %(default)s)")
@@ -286,13 +399,31 @@ def main(argv=None):
     try:
         args.func(args)
     except CliError as error:
-        print(f"maglog: error: {error}", file=sys.stderr)
-        return 1
+        return _fail(f"maglog: error: {error}")
+    except BrokenPipeError:
+        # The reader went away (`maglog ... | head`): nothing left to say to it.
+        return _fail("maglog: error: standard output was closed by its reader")
+    except OSError as error:
+        return _fail(f"maglog: error: {_os_message(error)}")
+    except MemoryError:
+        return _fail("maglog: error: out of memory; try a smaller run")
     except KeyboardInterrupt:
-        print("maglog: interrupted", file=sys.stderr)
-        return 130
+        return _fail("maglog: interrupted", 130)
     return 0
 
 
+def _fail(message, status=1):
+    print(message, file=sys.stderr)
+    return status
+
+
 def _entry():
-    sys.exit(main())
+    status = main()
+    try:
+        if sys.stdout is not None:
+            sys.stdout.flush()
+    except OSError:
+        # Standard output is gone; keep Python from reporting it again at exit.
+        sys.stdout = None
+        status = status or 1
+    sys.exit(status)

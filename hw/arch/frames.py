@@ -26,6 +26,12 @@ PRINTABLE_MAX = 0x7E
 
 #: Default MAX_FRAME: NMEA 0183 allows 82 bytes, RTK receivers send longer GGA.
 DEFAULT_MAX_FRAME = 128
+#: Largest MAX_FRAME a build accepts: the position counters of the frame filter are sized
+#: for it, and no instrument the logger serves sends longer lines.
+MAX_FRAME_LIMIT = 1024
+#: Largest frame FIFO per channel, in bytes: 32 M9K blocks at 9 bits, already more than an
+#: EP4CE6 has for all channels together (30); a larger one cannot be built on the target.
+MAX_FIFO_DEPTH = 1 << 15
 
 #: NMEA sentence formatters the logger keeps, from any two-letter talker.
 NMEA_WHITELIST = ("GGA", "ZDA", "VTG")

@@ -17,6 +17,9 @@ CHARACTER_BITS = 1 + DATA_BITS + 1
 
 #: Receiver oversampling: samples per bit.
 OVERSAMPLING = 16
+#: Width of the receiver's run-time baud divisor (the front end's divisor registers): 9600
+#: baud from a 50 MHz clock needs 326, and 16 bits reach 47.7 baud at 50 MHz.
+DIVISOR_BITS = 16
 #: Oversampling ticks whose samples are voted on to decide a bit: the three around the
 #: middle of the bit (tick 0 is the first sample that saw the start bit's falling edge).
 VOTE_TICKS = (7, 8, 9)

@@ -5,7 +5,7 @@ import random
 import pytest
 
 from maglog.hw.arch.frames import COUNTER_NAMES
-from maglog.hw.frame_filter import ChannelKind
+from maglog.hw.frame_filter import ChannelKind, FrameFilter
 from maglog.sim import sentences
 from maglog.sim.frontend_run import run_frame_filter as run_filter
 from maglog.sim.reference import Kind, reference_filter
@@ -230,3 +230,16 @@ def test_random_fuzz_matches_reference(kind):
     # The fuzz reaches every cause the kind can have (no FIFO overflow at one byte a cycle).
     impossible = {"overflow"} | ({"checksum", "overlong"} if kind == CESIUM else set())
     assert all(ref.counters[name] > 10 for name in COUNTER_NAMES if name not in impossible)
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"max_frame": 10}, "Maximum frame length must be an integer from 11 to 1024, not 10"),
+    ({"max_frame": 1025}, "Maximum frame length must be an integer from 11 to 1024, not 1025"),
+    ({"fifo_depth": 64}, "FIFO depth must hold at least one frame of 128 bytes, not 64"),
+    ({"fifo_depth": 1 << 16}, "FIFO depth must be at most 32768 bytes (the block RAM of the "
+                              "target), not 65536"),
+])
+def test_parameters_the_design_cannot_build(kwargs, message):
+    with pytest.raises(ValueError) as error:
+        FrameFilter(ChannelKind.PMAG, **kwargs)
+    assert str(error.value) == message

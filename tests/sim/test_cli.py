@@ -1,9 +1,15 @@
 """The maglog command line: outputs, and clear errors for bad arguments."""
 
 import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
+from maglog.sim import cli
 from maglog.sim.cli import main
 
 
@@ -19,22 +25,27 @@ def test_hdl_verilog_writes_the_front_end(tmp_path, capsys):
 @pytest.mark.parametrize("argv,message", [
     (["hdl", "verilog", "--channels", "gps:9600"], "channel kind must be one of"),
     (["hdl", "verilog", "--channels", "nmea"], "each channel is KIND:BAUD"),
-    (["hdl", "verilog", "--max-frame", "zero"], "expected a positive integer"),
-    (["demo", "--seconds", "-1"], "expected a positive number"),
+    (["hdl", "verilog", "--max-frame", "zero"], "expected an integer from 1 to 1024"),
+    (["demo", "--seconds", "-1"], "expected a number in (0, 3600]"),
     (["hdl", "regmap", "--format", "pdf"], "invalid choice"),
 ])
 def test_bad_arguments_are_usage_errors(argv, message, capsys):
     with pytest.raises(SystemExit) as exit:
         main(argv)
     assert exit.value.code == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert message in err
+    assert err.count("\n") == 1, "a usage error is one line"
 
 
 def test_values_the_design_cannot_take_are_errors(capsys):
     assert main(["hdl", "verilog", "--max-frame", "5"]) == 1
     assert "Maximum frame length must be an integer" in capsys.readouterr().err
+    # 1 MHz cannot make 115200 baud within 1 % (divisor 0.54 rounds to 1: -46 %).
     assert main(["hdl", "verilog", "--clk-freq", "1e6"]) == 1
-    assert "cannot be reached" in capsys.readouterr().err or True
+    err = capsys.readouterr().err
+    assert err.startswith("maglog: error: Baud rate 115200 from a 1000000.0 Hz clock is off by")
+    assert err.count("\n") == 1
 
 
 def test_unwritable_output(tmp_path, capsys):
@@ -60,3 +71,104 @@ def test_demo_on_the_amaranth_backend(tmp_path, capsys):
     assert summary["reference_agrees"] is True
     assert sum(c["counters"]["kept"] for c in summary["channels"]) > 0
     assert (tmp_path / "frames.txt").read_bytes().startswith(b"$")
+
+
+# --- bad values, every option: one line, the right status, no traceback, no hang ---------
+
+#: Values no numeric option takes, whatever its range.
+NONSENSE = ["", "x", "inf", "-inf", "nan", "1e308", "-1", "1" + "0" * 309, "0x", "1e", "--"]
+
+#: (arguments before the value, option, values beyond the design's range)
+OPTIONS = [
+    (["hdl", "verilog"], "--clk-freq", ["0", "999", "5.1e8", "1e12"]),
+    (["hdl", "verilog"], "--max-frame", ["0", "1025", "1073741824"]),
+    (["hdl", "verilog"], "--fifo-depth", ["0", "1", "65536", "1073741824"]),
+    (["hdl", "verilog"], "--channels", ["pmag:0", "pmag:-5", "pmag:1e6", "pmag:9600,",
+                                        "pmag:10000000000", "nmea:٩٦٠٠"]),
+    (["calibrate", "card.img"], "--seed", ["-1", "4294967296", "1.5"]),
+    (["demo"], "--seconds", ["0", "3600.5", "1e6", "1e9"]),
+    (["demo"], "--seed", ["-1", "4294967296", "2.0"]),
+    (["demo"], "--divisor", ["0", "65536", "100000", "1000000000"]),
+    (["demo"], "--max-cycles", ["0", "1e3"]),
+    (["hdl", "regmap"], "--format", ["pdf", "C"]),
+    (["demo"], "--backend", ["ghdl", "Icarus"]),
+    (["calibrate", "card.img"], "--method", ["PSO", "newton"]),
+]
+CASES = [pytest.param(head + [option, value], id=f"{option}={value[:12]}")
+         for head, option, values in OPTIONS
+         for value in (values + (NONSENSE if option not in ("--format", "--backend",
+                                                            "--method", "--channels")
+                                 else []))
+         if not (option in ("--seed",) and value in ("1e308",))]
+
+
+class _Hang(Exception):
+    pass
+
+
+def _alarm(signum, frame):
+    raise _Hang()
+
+
+@pytest.mark.parametrize("argv", CASES)
+def test_bad_values_end_in_one_line(argv, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    previous = signal.signal(signal.SIGALRM, _alarm)
+    signal.alarm(20)
+    try:
+        try:
+            status = main(argv)
+        except SystemExit as exit:
+            status = exit.code
+    except _Hang:
+        pytest.fail(f"maglog {' '.join(argv)} ran for 20 s on a bad value")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    err = capsys.readouterr().err
+    assert status in (1, 2), err
+    assert "Traceback" not in err
+    assert err.startswith("maglog"), err
+    assert err.count("\n") == 1, err
+
+
+def test_demo_refuses_a_run_beyond_its_cycle_budget(tmp_path, capsys):
+    # 16-bit divisor at its maximum: valid, but some 10^10 cycles; said before simulating.
+    assert main(["demo", "--divisor", "65535", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "simulated clock cycles" in err and "raise --max-cycles" in err
+    assert not (tmp_path / "icarus").exists()
+
+
+@pytest.mark.parametrize("command", [["demo"], ["calibrate", "CARD"]])
+def test_output_folder_the_os_refuses(command, tmp_path, capsys):
+    card = tmp_path / "card.img"
+    card.write_bytes(b"not a card")
+    command = [str(card) if word == "CARD" else word for word in command]
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    # (the path named is the one the system refused: for /proc/maglog/x, its parent)
+    for out, named in ((blocker, blocker), (blocker / "below", blocker / "below"),
+                       ("/proc/maglog/x", "/proc/maglog")):
+        assert main(command + ["--out", str(out)]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f"maglog: error: {named}: ") and err.count("\n") == 1, err
+
+
+def test_unreadable_card_is_one_line(tmp_path, capsys):
+    assert main(["calibrate", str(tmp_path)]) == 1
+    assert capsys.readouterr().err == f"maglog: error: {tmp_path}: is a folder, not a card image or log\n"
+    assert main(["calibrate", str(tmp_path / "none.img")]) == 1
+    assert "no such file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("what", ["verilog", "regmap"])
+def test_closed_standard_output(what):
+    # The console script's own entry point, with file descriptor 1 closed.
+    code = "import sys; from maglog.sim.cli import _entry; sys.argv = ['maglog', 'hdl', %r]; _entry()"
+    result = subprocess.run(f"{sys.executable} -c \"{code % what}\" >&-", shell=True,
+                            capture_output=False, stderr=subprocess.PIPE, text=True,
+                            timeout=120)
+    assert result.returncode == 1
+    assert result.stderr == ("maglog: error: standard output is closed; "
+                             "write to a file with -o FILE\n")
