@@ -172,3 +172,11 @@ def test_closed_standard_output(what):
     assert result.returncode == 1
     assert result.stderr == ("maglog: error: standard output is closed; "
                              "write to a file with -o FILE\n")
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
+@pytest.mark.parametrize("what", ["verilog", "regmap"])
+def test_full_disk_is_one_line(what, capsys):
+    assert main(["hdl", what, "-o", "/dev/full"]) == 1
+    assert capsys.readouterr().err == ("maglog: error: cannot write /dev/full: "
+                                       "no space left on the device\n")
