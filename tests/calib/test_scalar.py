@@ -36,14 +36,17 @@ def canonical(p, o):
     return r * signs[:, None], (q * signs).T @ o
 
 
+@pytest.mark.parametrize("solver", ["lm", "trf"])
 @pytest.mark.parametrize("method", ["pso", "lm"])
-def test_recovers_known_parameters_at_the_noise_floor(method):
+def test_recovers_known_parameters_at_the_noise_floor(method, solver):
     b, p, o = synthetic(1)
-    result = calibrate_scalar(b, FIELD, method=method)
+    result = calibrate_scalar(b, FIELD, method=method, solver=solver)
     k_true, c_true = canonical(p, o)
     floor = np.sqrt(np.mean((np.linalg.norm(apply_scalar(k_true, c_true, b), axis=1)
                              - FIELD) ** 2))
     assert result.success, result.message
+    assert result.status > 0 and result.message.startswith("converged: ")
+    assert result.solver == solver and result.at_bound == []
     assert result.rms <= 1.01 * floor
     assert result.rms_before > 100 * result.rms
     np.testing.assert_allclose(result.K, k_true, atol=2e-4)
@@ -80,16 +83,18 @@ def test_never_the_trivial_solution():
     assert result.rms < 10
 
 
+@pytest.mark.parametrize("solver", ["lm", "trf"])
 @pytest.mark.parametrize("noise", [5.0, 100.0])
 @pytest.mark.parametrize("coverage,limit", [("full", 1.01), ("uav", 1.01), ("planar", 1.10)])
-def test_flight_coverages_reach_the_noise_floor(coverage, limit, noise):
+def test_flight_coverages_reach_the_noise_floor(coverage, limit, noise, solver):
     from maglog.sim.scenario import ErrorModel, make_flight
     flight = make_flight(coverage=coverage, seconds=100, seed=3, errors=ErrorModel(noise=noise))
     k_true, c_true = flight.errors.truth()
     floor = np.sqrt(np.mean((np.linalg.norm(apply_scalar(k_true, c_true, flight.b_meas),
                                             axis=1) - flight.total) ** 2))
-    result = calibrate_scalar(flight.b_meas, flight.total)
+    result = calibrate_scalar(flight.b_meas, flight.total, solver=solver)
     assert np.all(np.isfinite(result.x))
+    assert result.success and result.status > 0, result.message
     assert result.rms <= limit * floor
     if coverage == "planar":
         # A level flight cannot separate the vertical axis's scale from its offset: said,
@@ -105,7 +110,19 @@ def test_flight_coverages_reach_the_noise_floor(coverage, limit, noise):
     (np.zeros((20, 2)), FIELD, r"Samples must be an \(N, 3\) array, not shape \(20, 2\)"),
     (np.zeros((5, 3)), FIELD, "At least 10 samples are needed for nine parameters, not 5"),
     (np.full((20, 3), np.nan), FIELD, "Samples must be finite"),
-    (np.ones((20, 3)), -1.0, "The reference field must be finite and positive"),
+    (np.arange(60.0).reshape(20, 3), -1.0, "The reference field must be finite and positive"),
+    (np.arange(60.0).reshape(20, 3), 1e308, "The reference field must be below 1e\\+08 nT"),
+    (np.arange(60.0).reshape(20, 3), np.ones(7), r"one value or one per sample \(20\)"),
+    # All zero, sub-nT, stuck at the format's largest value, one or two distinct vectors,
+    # values no magnetometer gives: said, not fitted (they ended in LinAlgError or in a
+    # "converged" nonsense).
+    (np.zeros((20, 3)), FIELD, "Axis x does not change"),
+    (np.linspace(0, 0.5, 60).reshape(20, 3), FIELD, r"Axis x does not change \(peak-to-peak"),
+    (np.column_stack([np.arange(20.0) * 100, np.arange(20.0) * 50, np.full(20, 99999.9)]),
+     FIELD, r"Axis z does not change \(peak-to-peak 0 nT, about 99999.9 nT\)"),
+    (np.tile([[1e4, 2e4, 3e4], [-1e4, 5e3, 4e4]], (10, 1)), FIELD,
+     "Only 2 distinct vectors among 20 samples; at least 10 are needed for nine parameters"),
+    (np.arange(60.0).reshape(20, 3) * 1e300, FIELD, "Samples must be below 1e\\+08 nT"),
 ])
 def test_bad_input(b, r, message):
     with pytest.raises(ValueError, match=message):
@@ -118,3 +135,41 @@ def test_bad_options():
         calibrate_scalar(b, FIELD, method="ga")
     with pytest.raises(ValueError, match="Kernel must be 'numba' or 'numpy'"):
         calibrate_scalar(b, FIELD, kernel="cuda")
+
+
+def _ill_posed_flight():
+    """A stretch of UAV flight whose reference the model cannot reach inside the box: the
+    raw field is twice the reference's scale plus an offset outside it."""
+    from maglog.sim.scenario import make_flight
+    flight = make_flight(coverage="uav", seconds=30, seed=9)
+    return flight.b_meas, flight.total * (1 + 0.9 * np.sin(np.arange(flight.t.size) / 7))
+
+
+@pytest.mark.parametrize("solver", ["lm", "trf"])
+def test_status_is_honest_at_the_bound_and_at_the_evaluation_limit(solver, monkeypatch):
+    from maglog.calib import scalar
+    b, r = _ill_posed_flight()
+    result = calibrate_scalar(b, r, solver=solver)
+    # A reference that no K, c in the box can follow: the polish ends on the box.
+    assert not result.success
+    assert result.at_bound and "at the search bound" in result.message
+    assert any("search bound" in w for w in result.warnings)
+    # One evaluation per parameter is not enough to converge: said, not "converged".
+    b, p, o = synthetic(11, n=400)
+    monkeypatch.setattr(scalar, "MAX_NFEV_PER_PARAMETER", 0.2)
+    result = calibrate_scalar(b, FIELD, method="lm", solver=solver)
+    assert result.status == 0 and not result.success
+    assert result.message.startswith("not converged: stopped at the evaluation limit")
+    assert any("did not converge" in w for w in result.warnings)
+
+
+def test_both_solvers_agree_on_the_same_cases():
+    from maglog.sim.scenario import make_flight
+    for coverage in ("full", "uav", "planar"):
+        flight = make_flight(coverage=coverage, seconds=100, seed=4)
+        lm = calibrate_scalar(flight.b_meas, flight.total, solver="lm")
+        trf = calibrate_scalar(flight.b_meas, flight.total, solver="trf")
+        assert lm.success and trf.success
+        assert lm.rms == pytest.approx(trf.rms, rel=1e-6)
+        np.testing.assert_allclose(lm.K, trf.K, atol=1e-6)
+        np.testing.assert_allclose(lm.c, trf.c, atol=0.05)
