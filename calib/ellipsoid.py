@@ -10,7 +10,10 @@ of Li and Griffiths (2004) that always returns an ellipsoid (4J - I^2 = 1).
 
 Coverage gate: samples are counted in the eight octants around the running centroid; a
 fit is attempted only when every octant has ``min_per_octant`` samples (progress = octants
-filled), because a fit from one side of the ellipsoid is not determined.
+filled), because a fit from one side of the ellipsoid is not determined. Samples that
+cannot determine any fit (a stuck axis, fewer than ten distinct vectors, values no
+magnetometer gives) are refused before the gate with a ``ValueError`` that says so: a
+stuck axis equal to the running centroid would otherwise count in every octant.
 
 Ref: Q. Li and J. G. Griffiths, "Least squares ellipsoid specific fitting", Geometric
      Modeling and Processing 2004, pp. 335-340.
@@ -19,6 +22,8 @@ Ref: Q. Li and J. G. Griffiths, "Least squares ellipsoid specific fitting", Geom
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from ._samples import MAX_FIELD_NT, check_samples
 
 
 __all__ = ["Coverage", "octant_coverage", "EllipsoidResult", "fit_ellipsoid"]
@@ -115,11 +120,11 @@ def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate=Tr
     """Fit the samples' ellipsoid; ``field_nt`` is the field's magnitude (the sphere's
     radius after calibration). With ``gate``, an incomplete octant coverage is refused
     (``success`` False, the coverage in the result) instead of fitted."""
-    b = np.asarray(b, dtype=float)
-    if b.ndim != 2 or b.shape[1] != 3 or len(b) < 10:
-        raise ValueError(f"Samples must be an (N, 3) array with N >= 10, not shape {b.shape}")
-    if not np.all(np.isfinite(b)):
-        raise ValueError("Samples must be finite (found NaN or infinity)")
+    b = check_samples(b, 10, "for an ellipsoid's nine parameters")
+    field_nt = float(field_nt)
+    if not (np.isfinite(field_nt) and 0 < field_nt <= MAX_FIELD_NT):
+        raise ValueError(f"The field must be positive and at most {MAX_FIELD_NT:.0e} nT, not "
+                         f"{field_nt!r}")
     if method not in ("algebraic", "constrained"):
         raise ValueError(f"Method must be 'algebraic' or 'constrained', not {method!r}")
     coverage = octant_coverage(b, min_per_octant=min_per_octant)
@@ -135,8 +140,11 @@ def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate=Tr
     spread = float(np.sqrt(np.mean(np.sum((b - mean) ** 2, axis=1))))
     unit = (b - mean) / spread
     d = _design(unit)
-    v = _algebraic(d) if method == "algebraic" else _li_griffiths(d)
-    center_u, w_u, _ = _to_geometry(v, 1.0)
+    try:
+        v = _algebraic(d) if method == "algebraic" else _li_griffiths(d)
+        center_u, w_u, _ = _to_geometry(v, 1.0)
+    except np.linalg.LinAlgError:
+        center_u, w_u = None, None          # a singular quadric: no centre, no ellipsoid
     if w_u is None:
         return EllipsoidResult(center=nan3, W=np.full((3, 3), np.nan), radii=nan3,
                                rms=np.nan, success=False,

@@ -48,10 +48,29 @@ def test_coverage_counts_every_octant():
 
 
 def test_bad_input():
-    with pytest.raises(ValueError, match="N >= 10"):
+    with pytest.raises(ValueError, match="At least 10 samples are needed for an ellipsoid"):
         fit_ellipsoid(np.zeros((5, 3)), FIELD)
     with pytest.raises(ValueError, match="Method must be"):
         fit_ellipsoid(samples(4)[0], FIELD, method="magic")
+    with pytest.raises(ValueError, match="The field must be positive"):
+        fit_ellipsoid(samples(4)[0], 0.0)
+
+
+def test_samples_that_determine_no_ellipsoid_are_refused_before_the_gate():
+    b, _, _ = samples(6)
+    # A stuck z axis equal to the running centroid counts in every octant (>=): it passed
+    # the gate and "fitted". Now it is named.
+    stuck = b.copy()
+    stuck[:, 2] = 99999.9
+    with pytest.raises(ValueError, match=r"Axis z does not change .*about 99999.9 nT"):
+        fit_ellipsoid(stuck, FIELD)
+    with pytest.raises(ValueError, match="Only 2 distinct vectors"):
+        fit_ellipsoid(np.vstack([b[:2]] * 20), FIELD)
+    # Scaled by 1e300 the normal equations overflowed (LinAlgError).
+    with pytest.raises(ValueError, match="Samples must be below 1e\\+08 nT"):
+        fit_ellipsoid(b * 1e300, FIELD)
+    with pytest.raises(ValueError, match="Axis x does not change"):
+        fit_ellipsoid(np.zeros((50, 3)), FIELD)
 
 
 def hyperboloid(n=3000, seed=5):
