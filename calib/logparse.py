@@ -25,7 +25,8 @@ goes to :attr:`ParsedLog.bad` as ``(line_number, reason)`` with one of the reaso
     the wrong number of comma-separated fields for the sentence;
 ``number``
     a field that does not parse or is out of range (time ``246000``, month 13, hemisphere
-    ``X``).
+    ``X``, a ``$PMAG1`` axis at or beyond the form's ±100,000 nT, a fix quality above 9, a
+    ZDA year of five digits or a date past 9999-12-31, a number beyond a double's range).
 
 Well-formed NMEA sentences with a good checksum that the logger would have dropped (RMC,
 GSA, GSV, proprietary ``$P...``) are not bad: they are counted in ``report.ignored`` and
@@ -145,6 +146,16 @@ _LON_LIMIT = 180.0
 _KNOT_M_S = 1852.0 / 3600.0
 _KMH_M_S = 1000.0 / 3600.0
 _MISSING_INT = -1
+#: The $PMAG1 form is ±XXXXX.X: anything at or beyond 100,000 nT is not a reading.
+_PMAG_LIMIT_NT = 100_000.0
+#: Largest values of the integer fields (NMEA 0183 §6.3): the GGA fix quality is one digit,
+#: the satellite count at most two (three allowed), ZDA's day and month two digits (the
+#: calendar itself is checked by datetime), the year four.
+_MAX_QUALITY = 9
+_MAX_SATELLITES = 999
+_MAX_DAY = 99
+_MAX_MONTH = 99
+_MAX_YEAR = 9999
 
 # --- alignment ----------------------------------------------------------------------------
 
@@ -358,16 +369,24 @@ def _float(text: str, what: str) -> float:
     if not text:
         return math.nan
     if not _DECIMAL_RE.match(text):
-        raise _BadLine(NUMBER, f"{what} {text!r} is not a number")
-    return float(text)
+        raise _BadLine(NUMBER, f"{what} {_clip(text)!r} is not a number")
+    value = float(text)
+    if not math.isfinite(value):
+        raise _BadLine(NUMBER, f"{what} {_clip(text)!r} is beyond a double's range")
+    return value
 
 
-def _uint(text: str, what: str) -> int:
+def _uint(text: str, what: str, maximum: int) -> int:
     if not text:
         return _MISSING_INT
     if not _UINT_RE.match(text):
-        raise _BadLine(NUMBER, f"{what} {text!r} is not an unsigned integer")
-    return int(text)
+        raise _BadLine(NUMBER, f"{what} {_clip(text)!r} is not an unsigned integer")
+    # Compare digits before converting: a field of thousands of digits is no integer to
+    # build (Python refuses beyond 4,300 digits) and no int64 to store.
+    digits = text.lstrip("0") or "0"
+    if len(digits) > len(str(maximum)) or int(digits) > maximum:
+        raise _BadLine(NUMBER, f"{what} {_clip(text)!r} is out of range (0..{maximum})")
+    return int(digits)
 
 
 def _time_of_day(text: str) -> float:
@@ -412,13 +431,18 @@ def _check_count(fields: list[str], allowed: tuple[int, ...], what: str) -> None
 def _parse_pmag(payload: str) -> tuple[int, float, float, float]:
     fields = payload.split(",")
     _check_count(fields, (_PMAG_FIELDS,), "$PMAG1")
-    seq = _uint(fields[1], "sequence number")
-    if seq == _MISSING_INT or seq >= SEQ_MODULUS:
-        raise _BadLine(NUMBER, f"sequence number {fields[1]!r} is not 0..{SEQ_MODULUS - 1}")
+    if not _UINT_RE.match(fields[1]) or len(fields[1].lstrip("0")) > len(str(SEQ_MODULUS)) \
+            or int(fields[1]) >= SEQ_MODULUS:
+        raise _BadLine(NUMBER, f"sequence number {_clip(fields[1])!r} is not "
+                               f"0..{SEQ_MODULUS - 1}")
+    seq = int(fields[1])
     values = [_float(text, f"field {axis}") for text, axis in zip(fields[2:], "xyz")]
     for value, axis, text in zip(values, "xyz", fields[2:]):
         if math.isnan(value):
             raise _BadLine(NUMBER, f"field {axis} {text!r} is empty")
+        if abs(value) >= _PMAG_LIMIT_NT:
+            raise _BadLine(NUMBER, f"field {axis} {_clip(text)!r} is beyond the $PMAG1 "
+                                   f"form's ±{_PMAG_LIMIT_NT - 0.1:.1f} nT")
     return seq, values[0], values[1], values[2]
 
 
@@ -439,8 +463,8 @@ def _parse_gga(fields: list[str]) -> tuple:
     tod = _time_of_day(fields[1])
     lat = _angle(fields[2], fields[3], _LAT_RE, "NS", _LAT_LIMIT, "latitude")
     lon = _angle(fields[4], fields[5], _LON_RE, "EW", _LON_LIMIT, "longitude")
-    quality = _uint(fields[6], "fix quality")
-    satellites = _uint(fields[7], "satellite count")
+    quality = _uint(fields[6], "fix quality", _MAX_QUALITY)
+    satellites = _uint(fields[7], "satellite count", _MAX_SATELLITES)
     hdop = _float(fields[8], "HDOP")
     altitude = _float(fields[9], "altitude")
     return tod, lat, lon, quality, satellites, hdop, altitude
@@ -450,15 +474,20 @@ def _parse_zda(fields: list[str]) -> _dt.datetime | None:
     _check_count(fields, _ZDA_FIELDS, "ZDA")
     tod = _time_of_day(fields[1])
     day, month, year = (
-        _uint(text, what) for text, what in zip(fields[2:5], ("day", "month", "year"))
+        _uint(text, what, maximum)
+        for text, what, maximum in zip(
+            fields[2:5], ("day", "month", "year"), (_MAX_DAY, _MAX_MONTH, _MAX_YEAR)
+        )
     )
     if math.isnan(tod) or _MISSING_INT in (day, month, year):
         return None
     try:
         midnight = _dt.datetime(year, month, day)
-    except ValueError as error:
-        raise _BadLine(NUMBER, f"date {fields[2]},{fields[3]},{fields[4]}: {error}") from None
-    return midnight + _dt.timedelta(seconds=tod)
+        return midnight + _dt.timedelta(seconds=tod)
+    except (ValueError, OverflowError) as error:
+        # OverflowError: a leap second at the end of 9999-12-31 is past the calendar.
+        raise _BadLine(NUMBER, f"date {fields[2]},{fields[3]},{fields[4]}: {error} "
+                               f"(time {fields[1]})") from None
 
 
 def _parse_vtg(fields: list[str]) -> tuple[float, float]:
@@ -610,6 +639,7 @@ class _Anchors:
     date: _dt.date | None
     rollovers: int
     not_increasing: int
+    beyond_calendar: bool = False  # the ZDA's day, moved to the first fix's, is off the calendar
 
 
 def _find_anchors(gga_line, tod, quality, zda_line, zda_datetimes) -> _Anchors:
@@ -628,6 +658,7 @@ def _find_anchors(gga_line, tod, quality, zda_line, zda_datetimes) -> _Anchors:
     epoch = epoch[keep]
     line = gga_line[index]
     date = None
+    beyond_calendar = False
     dated = [(zl, when) for zl, when in zip(zda_line, zda_datetimes) if when is not None]
     if dated and len(line):
         # The first dated ZDA gives the calendar day of the anchor nearest to it in the log
@@ -636,11 +667,18 @@ def _find_anchors(gga_line, tod, quality, zda_line, zda_datetimes) -> _Anchors:
         nearest = int(np.argmin(np.abs(line - zl)))
         zda_tod = (when - _dt.datetime(when.year, when.month, when.day)).total_seconds()
         shift = round((zda_tod - epoch[nearest]) / _SECONDS_PER_DAY)
-        date = when.date() + _dt.timedelta(days=shift)
+        try:
+            date = when.date() + _dt.timedelta(days=shift)
+        except OverflowError:
+            # The first fix falls on a day before 0001-01-01 or after 9999-12-31.
+            date = None
+            beyond_calendar = True
     elif dated:
         date = dated[0][1].date()
     rollovers = int(days[keep][-1]) if len(keep) else 0
-    return _Anchors(line, epoch, index, date, rollovers, len(usable) - len(keep))
+    return _Anchors(
+        line, epoch, index, date, rollovers, len(usable) - len(keep), beyond_calendar
+    )
 
 
 def _line_times(position: np.ndarray, anchor_pos: np.ndarray, anchor_t: np.ndarray) -> np.ndarray:
@@ -793,6 +831,11 @@ def parse_log(data: bytes, *, name: str = "log", gps_latency: float = 0.0) -> Pa
     else:
         report.line_rate_hz = float(
             (anchor_pos[-1] - anchor_pos[0]) / (anchor_t[-1] - anchor_t[0])
+        )
+    if anchors.beyond_calendar:
+        report.messages.append(
+            f"{name}: the ZDA date, carried to the first fix, falls outside the calendar "
+            "(0001-01-01..9999-12-31): the date is unknown"
         )
     if report.time_aligned and anchors.date is None:
         report.messages.append(

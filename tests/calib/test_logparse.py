@@ -491,6 +491,18 @@ def test_date_from_zda_without_anchors():
     assert empty.bad == [] and empty.zda.datetime == [None] and empty.date is None
 
 
+def test_a_date_carried_off_the_calendar_is_unknown_and_said():
+    # The only ZDA is just after midnight of 0001-01-01; the first fix, before midnight,
+    # would fall on a day before the calendar starts (OverflowError before issue 10).
+    events = [event for event in build() if event.kind != "zda" or event.truth >= MIDNIGHT + 5]
+    first = next(event for event in events if event.kind == "zda")
+    first.line = zda(dt.datetime(1, 1, 1) + dt.timedelta(seconds=first.truth - MIDNIGHT))
+    events = [event for event in events if event.kind != "zda" or event is first]
+    parsed = parse(events)
+    assert parsed.date is None and parsed.report.time_aligned
+    assert any("falls outside the calendar" in message for message in parsed.report.messages)
+
+
 def test_leap_second_in_zda():
     parsed = parse_log(nmea_sentence("GPZDA,235960.00,31,12,2016,00,00"))
     assert parsed.zda.datetime == [dt.datetime(2017, 1, 1)]
@@ -564,6 +576,26 @@ BAD_CASES = [
     ("cesium field short", b"$ 4989.131,1249\r\n", "number"),
     ("cesium signal letters", b"$ 49895.131,12a4\r\n", "number"),
     ("cesium prefix 2", b"$249895.131,1249\r\n", "number"),
+    # values that overflowed a C int, an int64, the calendar or a double (OverflowError or
+    # ValueError, and infinities, before issue 10)
+    ("zda day of 19 digits", nmea_sentence("GPZDA,120000.00,9999999999999999999,04,2024,00,00"),
+     "number"),
+    ("zda leap second after 9999", nmea_sentence("GPZDA,235960.50,31,12,9999,00,00"), "number"),
+    ("zda year of 5 digits", nmea_sentence("GPZDA,120000.00,01,04,20240,00,00"), "number"),
+    (
+        "gga quality 2^63",
+        nmea_sentence(GGA_BODY.replace(",N,00830.00000,E,1,", f",N,00830.00000,E,{2**63},")),
+        "number",
+    ),
+    ("gga satellites of 5000 digits", nmea_sentence(GGA_BODY.replace(",1,08,", ",1," + "9" * 5000
+                                                                      + ",")), "number"),
+    ("gga altitude of 400 digits", nmea_sentence(GGA_BODY.replace(",100.0,M,", ",1" + "0" * 400
+                                                                      + ",M,")), "number"),
+    ("pmag axis of 309 digits", nmea_sentence("PMAG1,00001," + "9" * 309 + ",+00002.0,+00003.0"),
+     "number"),
+    ("pmag axis at 100000", nmea_sentence("PMAG1,00001,+100000.0,+00002.0,+00003.0"), "number"),
+    ("pmag seq of 5000 digits", nmea_sentence("PMAG1," + "1" * 5000 + ",+1.0,+2.0,+3.0"),
+     "number"),
     # unknown sentences
     ("no dollar", b"hello world\r\n", "unknown_sentence"),
     ("lower case", b"$hello,world*00\r\n", "unknown_sentence"),
