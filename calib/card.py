@@ -800,9 +800,13 @@ _TEXT_BYTES = frozenset(range(0x20, 0x7F)) | {0x09, 0x0A, 0x0D}
 
 
 def _looks_like_text_log(head):
-    if not head or b"\x00" in head or b"$" not in head:
+    # A few NUL bytes (a serial glitch the logger kept, a write cut by power loss) do not
+    # make a log an image: only the share of text does. An image without the boot
+    # signature is mostly zeros and binary tables, far below the share.
+    if not head or b"$" not in head:
         return False
-    return sum(b in _TEXT_BYTES for b in head) >= _TEXT_FRACTION * len(head)
+    text = len(head) - len(head.translate(None, bytes(_TEXT_BYTES)))
+    return text >= _TEXT_FRACTION * len(head)
 
 
 def read_logs(source, *, allow_truncated=False):
