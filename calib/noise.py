@@ -169,9 +169,10 @@ def allan_deviation(y, rate, *, taus=None, slope_tolerance=0.1, slope_z=1.0, min
     rel_error = 1.0 / np.sqrt(2.0 * np.maximum(clusters - 1.0, 1.0))
     usable = (clusters >= min_clusters) & (deviation > 0)
     slopes, slope_errors = _local_slopes(taus_out, deviation, rel_error, usable, window)
-    model, cost, coef = _fit_sum_model(taus_out, deviation, rel_error, usable, min_span)
-    terms = _fit_slope_regions(taus_out, deviation, rel_error, slopes,
-                               slope_tolerance + slope_z * slope_errors, usable,
+    allowed = slope_tolerance + slope_z * slope_errors
+    model, cost, coef = _fit_sum_model(taus_out, deviation, rel_error, slopes, allowed, usable,
+                                       min_span)
+    terms = _fit_slope_regions(taus_out, deviation, rel_error, slopes, allowed, usable,
                                slope_tolerance, min_span, coef)
     resolved = [name for name, term in terms.items() if term.resolved]
     message = ("resolved: " + ", ".join(resolved)) if resolved else "no noise term resolved"
@@ -263,12 +264,18 @@ def _fit_slope_regions(taus, deviation, rel_error, slopes, allowed, usable, tole
     return terms
 
 
-def _fit_sum_model(taus, deviation, rel_error, usable, min_span):
+def _fit_sum_model(taus, deviation, rel_error, slopes, allowed, usable, min_span):
     """NNLS of sigma^2 = sum_j c_j^2 basis_j(tau), each row weighted by 1 / (2 rel sigma^2).
+
+    A term is resolved where it is at least half the model's variance and the model's slope
+    (sum of the terms' shares times their slopes) matches the curve's local slope, over at
+    least ``min_span`` decades: a curve that is no sum of these terms (a filtered series
+    below the filter's time constant) is not read as one.
 
     Returns the terms, the weighted sum of squares and the c_j^2."""
     names = list(TERMS)
     t, var, rel = taus[usable], deviation[usable] ** 2, rel_error[usable]
+    slopes, allowed = slopes[usable], allowed[usable]
     if t.size < len(names):
         return ({name: NoiseTerm(name, TERMS[name][0], False, np.nan, np.nan, (), 0,
                                  "not resolved: too few points for the sum model")
@@ -285,16 +292,19 @@ def _fit_sum_model(taus, deviation, rel_error, usable, min_span):
     octaves = max(np.log2(t[-1] / t[0]), 1.0)
     cov *= max(t.size / octaves, 1.0)
     share = basis * coef / np.maximum(basis @ coef, np.finfo(float).tiny)[:, None]
+    model_slope = share @ np.array([TERMS[name][0] for name in names])
+    agrees = np.isfinite(slopes) & (np.abs(slopes - model_slope) <= allowed)
     lt = np.log10(t)
     model = {}
     for j, name in enumerate(names):
         slope = TERMS[name][0]
-        runs = _runs(share[:, j] >= 0.5)
+        runs = _runs((share[:, j] >= 0.5) & agrees)
         start, stop = max(runs, key=lambda r: lt[r[1] - 1] - lt[r[0]]) if runs else (0, 0)
         span = lt[stop - 1] - lt[start] if runs else -1.0
         if coef[j] <= 0 or span < min_span or stop - start < 3:
             why = ("coefficient 0" if coef[j] <= 0 else
-                   f"at least half the model variance over only {max(span, 0):.2f} decades")
+                   f"at least half the model variance, with the curve's slope, over only "
+                   f"{max(span, 0):.2f} decades")
             model[name] = NoiseTerm(name, slope, False, np.nan, np.nan, (), 0,
                                     f"not resolved: {why}")
             continue
@@ -302,7 +312,8 @@ def _fit_sum_model(taus, deviation, rel_error, usable, min_span):
         error = float(np.sqrt(cov[j, j]) / (2 * value))      # d sqrt(c) = dc / (2 sqrt(c))
         model[name] = NoiseTerm(
             name, slope, True, value, error, (float(t[start]), float(t[stop - 1])),
-            int(stop - start), f"at least half the model variance over {span:.2f} decades")
+            int(stop - start),
+            f"at least half the model variance, with the curve's slope, over {span:.2f} decades")
     return model, float(residual ** 2), coef
 
 

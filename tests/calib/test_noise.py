@@ -121,18 +121,18 @@ def test_random_walk_bias_instability_and_rate_random_walk():
     # Gyro-like curve over four decades: -1/2, flat, +1/2. The sum model separates the
     # three; the slope regions see -1/2 and the floor, each within a neighbour's leakage.
     n, b, k, rate = 0.1, 0.307, 0.089, 100.0
-    result = allan_deviation(simulate_noise(200_000, rate, random_walk=n, bias_instability=b,
+    result = allan_deviation(simulate_noise(400_000, rate, random_walk=n, bias_instability=b,
                                             rate_random_walk=k, rng=7), rate)
     assert resolved(result, "model") == {"random_walk", "bias_instability",
                                          "rate_random_walk"}
     assert result.model["random_walk"].value == pytest.approx(n, rel=0.05)
     assert result.model["bias_instability"].value == pytest.approx(b, rel=0.05)
-    # The +1/2 tail has few clusters: over 20 other seeds this estimate scattered by 10 %
-    # (range -23 % to +15 %).
-    assert result.model["rate_random_walk"].value == pytest.approx(k, rel=0.35)
+    # The +1/2 tail has few clusters: over 40 other seeds K was resolved in 39, scattered
+    # by 8 % (range -21 % to +10 %).
+    assert result.model["rate_random_walk"].value == pytest.approx(k, rel=0.3)
     assert {"random_walk", "bias_instability"} <= resolved(result)
     # The fixed-slope fits carry their neighbours' leakage (+5 % and +14 % over 20 other
-    # seeds), which their stated errors include.
+    # seeds at half this length), which their stated errors include.
     for name, truth in (("random_walk", n), ("bias_instability", b)):
         term = result.terms[name]
         assert term.value == pytest.approx(truth, rel=0.2)
@@ -165,6 +165,10 @@ def test_kalman_filter_is_a_low_pass_for_the_allan_curve():
     floor_before = before.terms["bias_instability"]
     floor_after = after.terms["bias_instability"]
     assert floor_after.value == pytest.approx(floor_before.value, rel=0.1)
+    # Below the time constant the filtered curve is no sum of IEEE terms: nothing is read
+    # there, by either method.
+    for term in [*after.terms.values(), *after.model.values()]:
+        assert not term.resolved or term.tau_range[0] > (1 / rate) / gain
 
     pure = simulate_noise(36_000, rate, quantisation=q, rng=9)
     before = allan_deviation(pure, rate)
