@@ -229,9 +229,15 @@ def provenance_line(report, source=None):
         state = f"{len(status)} uncommitted path{'s' if len(status) != 1 else ''}"
     digest = tree.get("source_sha256")
     source_hash = f"source sha256 {digest[:12]}" if digest else "no source hash"
-    changed = (tree.get("end") or {}).get("changed_during_run")
-    during = "" if not changed else \
-        f" ({len(changed)} path{'s' if len(changed) != 1 else ''} changed during the run)"
+    end = tree.get("end") or {}
+    changed = end.get("changed_during_run")
+    notes = []
+    if changed:
+        notes.append(f"{len(changed)} path{'s' if len(changed) != 1 else ''} changed during "
+                     f"the run")
+    if end.get("commit") and tree.get("commit") and end["commit"] != tree["commit"]:
+        notes.append(f"HEAD moved to `{end['commit'][:7]}` during the run")
+    during = f" ({'; '.join(notes)})" if notes else ""
     loads = report.get("load_average") or {}
 
     def one(value):

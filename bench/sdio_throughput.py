@@ -144,7 +144,7 @@ def main(argv=None):
           f"for {result['bus_limit_clocks']} data clocks: efficiency "
           f"{100 * result['efficiency']:.2f} % ({result['clocks_per_block']:.1f} clocks a "
           f"block; busy {result['busy_clocks']} clocks excluded); the clock paused "
-          f"{result['clock_pauses']} times for data ({result['paused_cycles']} system "
+          f"{result['clock_pauses']} times ({result['paused_cycles']} system "
           f"cycles) over {result['sd_clock_periods_checked']} periods, "
           f"{result['pauses_while_host_drives_dat']} of them while the host drove DAT")
     write_report(args.output, "sdio_throughput", argv, load_start, packages("amaranth"),
