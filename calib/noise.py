@@ -15,6 +15,11 @@ Each term is fitted only where the curve has that term's slope (``allan_deviatio
 ``terms``); where no such region exists the term is reported as not resolved, never read
 from a single point. A weighted non-negative least-squares fit of the sum of the five
 terms (``model``) is the cross-check. ``simulate_noise`` makes a series with known terms.
+
+Quantisation noise in this sense (slope -1) is white noise of the integrated signal, as
+when a gyro's angle is counted in steps S (Q = S / sqrt(12)). Rounding each sample of a
+magnetometer's field to its LSB is white noise of the signal itself: a random-walk term,
+N = LSB sqrt(tau0 / 12), not Q.
 """
 
 from dataclasses import dataclass, field
@@ -86,7 +91,7 @@ class AllanResult:
 
     ``terms`` are the slope-region fits (the answer); ``model`` the weighted NNLS fit of
     the sum of the five terms, with each term's range where it is at least half the model
-    variance. ``quantisation`` and ``bias_instability`` are the slope-region values (NaN
+    variance and the curve's slope agrees with the model's. ``quantisation`` and ``bias_instability`` are the slope-region values (NaN
     when not resolved); ``tau_min`` is where the curve is lowest."""
     taus: np.ndarray            # seconds
     deviation: np.ndarray       # overlapping Allan deviation, in the data's unit
@@ -122,7 +127,8 @@ def allan_deviation(y, rate, *, taus=None, slope_tolerance=0.1, slope_z=1.0, min
     """Overlapping Allan deviation of the rate-like series ``y`` sampled at ``rate`` Hz and
     the noise terms it resolves.
 
-    ``taus``: averaging times (s); default about ten per decade up to a third of the span.
+    ``taus``: averaging times (s); default 60 log-spaced cluster sizes (fewer after
+    rounding to whole samples) up to a third of the span.
     A term is resolved where the local slope (a weighted line over ``window`` decades of
     tau) stays within ``slope_tolerance`` plus ``slope_z`` standard errors of that local
     slope of the term's slope, over at least ``min_span`` decades, using only points with
@@ -132,9 +138,10 @@ def allan_deviation(y, rate, *, taus=None, slope_tolerance=0.1, slope_z=1.0, min
     up to ~10 % on the coefficient at the region's edge): ``model``, the sum of all terms
     fitted at once, does not.
 
-    On seeded synthetic series (see the tests) the defaults resolved no absent term in
-    98 to 100 of 100 series; a transition from slope -1 to 0 passes through -1/2 and
-    can, rarely, be taken for a short random-walk region."""
+    On 100 seeded synthetic series each of white noise, white noise plus rate random walk,
+    and quantisation noise plus flicker, the defaults resolved an absent term in 0, 1 and
+    2 of them: a curve going from slope -1 to 0 passes through -1/2 and can, rarely, be
+    taken for a short random-walk region."""
     y = np.asarray(y, dtype=float)
     if y.ndim != 1 or y.size < 4:
         raise ValueError(f"Series must be 1-D with at least 4 samples, not shape {y.shape}")

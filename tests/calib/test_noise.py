@@ -95,6 +95,11 @@ def test_quantisation_then_random_walk():
     assert resolved(result, "model") == {"quantisation", "random_walk"}
     assert result.model["quantisation"].value == pytest.approx(q, rel=0.03)
     assert result.model["random_walk"].value == pytest.approx(n, rel=0.03)
+    # Each term's model range is where it is at least half the variance: they meet at the
+    # crossover (to one step of the tau grid).
+    crossover = 3 * q ** 2 / n ** 2
+    assert crossover / 1.3 < result.model["quantisation"].tau_range[1] <= crossover
+    assert crossover <= result.model["random_walk"].tau_range[0] < crossover * 1.3
     assert "bias_instability" not in resolved(result)
 
 
