@@ -373,6 +373,21 @@ def heading_section():
     return rows
 
 
+def thread_scaling(b, r, lower, upper, repeats, particles=40, iterations=300):
+    """maglog's ring PSO on the numba cost with 1 thread and with every thread numba has:
+    what the thread count chosen for the benchmark costs or saves on this machine now."""
+    out = []
+    for threads in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+        numba.set_num_threads(threads)
+        _, seconds = repeat(lambda: _pso.pso(lambda x: _pso.cost_numba(x, b, r), lower, upper,
+                                             particles=particles, iterations=iterations,
+                                             seed=0), repeats)
+        out.append({"threads": threads, "seconds": summary(seconds)})
+        print(f"PSO maglog ring on numba, {threads} thread(s): best {min(seconds) * 1e3:.0f} "
+              f"ms, median {statistics.median(seconds) * 1e3:.0f} ms")
+    return out
+
+
 class StageClock:
     """Times the PSO inside ``calibrate_scalar`` by wrapping ``_pso.pso`` while it runs (the
     rest of the call is the polish, the uncertainties and the checks)."""
@@ -506,6 +521,8 @@ def main(argv=None):
     comparison = pso_comparison(b, r, lower, upper, repeats=args.pso_repeats,
                                 threads=numba.get_num_threads())
     comparison["startup"] = startup
+    comparison["thread_scaling"] = thread_scaling(b, r, lower, upper, args.pso_repeats)
+    numba.set_num_threads(args.threads)
     for pairing in comparison["pairings"]:
         if pairing["like_for_like"]:
             print(f"like for like: {pairing['pyswarms']} / {pairing['maglog']}: "

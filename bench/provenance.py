@@ -1,0 +1,515 @@
+"""The generated parts of bench/RESULTS.md: every table (and the sentences with figures
+next to it) rendered from the benchmark JSON it came from, closed by that JSON's provenance
+line.
+
+In RESULTS.md a generated block starts with a marker line ``<!-- generated: NAME -->`` and
+ends with its provenance line, ``Provenance (bench/results/X.json): ...``
+(:func:`_machine.provenance_line`). Everything between is what :data:`BLOCKS` ``[NAME]``
+renders from that JSON; nothing in a block is written by hand.
+
+    .venv/bin/python bench/provenance.py            # rewrite the blocks from the JSONs
+    .venv/bin/python bench/provenance.py --check    # only compare; exit 1 on a difference
+
+A table outside a block, a block with an unknown name or a provenance line that does not
+close a block is an error as well (tests/bench/test_provenance.py runs the check).
+"""
+
+import argparse
+import difflib
+import json
+import re
+import statistics
+import sys
+from pathlib import Path
+
+sys.dont_write_bytecode = True
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _machine import REPO, provenance_line
+
+
+RESULTS_MD = REPO / "bench" / "RESULTS.md"
+MARKER = re.compile(r"^<!-- generated: ([\w-]+) -->$")
+PROVENANCE = re.compile(r"^Provenance \((bench/results/[\w.-]+\.json)\): ")
+
+
+# --- formatting -------------------------------------------------------------------------
+
+def thousands(n):
+    return f"{n:,}"
+
+
+def ms(seconds, digits=0):
+    return f"{seconds * 1e3:.{digits}f} ms"
+
+
+def pct(x, digits=1):
+    return f"{100 * x:.{digits}f}"
+
+
+def table(head, rows, align):
+    """A Markdown table; ``align`` is one of 'l' / 'r' per column."""
+    lines = ["| " + " | ".join(head) + " |",
+             "|" + "|".join("---" if a == "l" else "---:" for a in align) + "|"]
+    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+    return lines
+
+
+# --- synth.json -------------------------------------------------------------------------
+
+def _design(r):
+    what, _, note = r["design"].partition("#")
+    what = f"`{what.strip()}`"
+    if note.strip():
+        what += f" ({note.strip()})"
+    return ("part: " if r["part"] else "") + what
+
+
+def _synth_table(report, modules):
+    les = report["device"]["les"]
+    by_module = {r["module"]: r for r in report["results"]}
+    rows = []
+    for module in modules:
+        r = by_module[module]
+        low, high = 100 * r["le_min"] / les, 100 * r["le_max"] / les
+        share = f"{low:.1f}" if f"{low:.1f}" == f"{high:.1f}" else f"{low:.1f}–{high:.1f}"
+        rows.append([_design(r), r["lut4"], r["ff"], r["m9k"],
+                     f"{r['le_min']}..{r['le_max']}", share])
+    return table(["block", "LUT4", "FF", "M9K", "LE range",
+                  f"% of {report['device']['name']} LEs"], rows, "lrrrrr")
+
+
+def synth_frontend(report):
+    by = {r["module"]: r for r in report["results"]}
+    lines = _synth_table(report, ["uart_rx", "channel_nmea", "channel_pmag", "channel_cesium",
+                                  "maglog_frontend", "frame_fifo", "frame_arbiter",
+                                  "channel_pmag_w1"])
+    front, pmag, narrow = by["maglog_frontend"], by["channel_pmag"], by["channel_pmag_w1"]
+    channels = [by[k] for k in ("channel_nmea", "channel_pmag", "channel_cesium")]
+    glue_lut = front["lut4"] - sum(c["lut4"] for c in channels) - by["frame_arbiter"]["lut4"]
+    glue_ff = front["ff"] - sum(c["ff"] for c in channels) - by["frame_arbiter"]["ff"]
+    seconds = [r["synth_seconds"] for r in report["results"]]
+    lines += [
+        "",
+        f"- Memories: the front end uses {front['m9k']} M9K "
+        f"({pct(front['m9k'] / report['device']['m9k'], 0)} % of an "
+        f"{report['device']['name']}'s {report['device']['m9k']}); "
+        f"`memory_libmap` added {sum(r['libmap_added_ff_cells'] for r in report['results'])} "
+        f"flip-flop cells in all blocks together, and the script found "
+        f"{len(report['problems'])} problem(s).",
+        f"- Counters: with 1-bit counters the PMAG channel drops from {pmag['lut4']}/"
+        f"{pmag['ff']} to {narrow['lut4']}/{narrow['ff']} LUT4/FF: the counters cost "
+        f"{pmag['lut4'] - narrow['lut4']} LUT4 and {pmag['ff'] - narrow['ff']} FF per channel.",
+        f"- The front end minus its three channels and the arbiter: {glue_lut} LUT4, "
+        f"{glue_ff} FF.",
+        f"- Yosys time per block: {min(seconds):.1f}–{max(seconds):.1f} s.",
+    ]
+    return lines
+
+
+def synth_sd(report):
+    by = {r["module"]: r for r in report["results"]}
+    lines = _synth_table(report, ["sdio_host", "sd_cmd", "sd_dat_writer", "sd_dat_reader"])
+    total = by["sdio_host"]["lut4"] + by["maglog_frontend"]["lut4"]
+    lines += ["", f"The SD host and the front end together: {total} LUT4 "
+              f"({pct(total / report['device']['les'])} % of an {report['device']['name']}'s "
+              f"{thousands(report['device']['les'])} LEs, counting LUT4 alone)."]
+    return lines
+
+
+def synth_sdram(report):
+    return _synth_table(report, ["sdram_mt48lc4m32b2", "sdram_is42s16160", "ring_buffer",
+                                 "dma"])
+
+
+# --- sim_throughput.json ----------------------------------------------------------------
+
+BACKEND_NAMES = {"amaranth": "Amaranth simulator", "icarus": "cocotb + Icarus",
+                 "verilator": "cocotb + Verilator"}
+
+
+def sim_throughput(report):
+    rows = []
+    for r in report["results"]:
+        m = r["main"]
+        steady, overhead = r["steady_cycles_per_second"], r["overhead_seconds"]
+        rows.append([BACKEND_NAMES.get(r["backend"], r["backend"]), f"{r['build_seconds']:.2f}",
+                     m["sentences"], thousands(m["cycles"]), f"{m['seconds']:.2f}",
+                     thousands(m["cycles_per_second"]),
+                     "–" if steady is None else thousands(steady),
+                     "–" if overhead is None else f"{overhead:.2f}",
+                     r["slowdown_vs_hardware"]])
+    lines = table(["backend", "build s", "sentences", "cycles", "run s", "cycles/s",
+                   "steady cycles/s", "overhead s", "× slower"], rows, "lrrrrrrrr")
+    lines += ["", f"Stimulus: {report['stimulus']}; design `{report['design']}`. Tools: "
+              + ", ".join(f"{k} {v}" for k, v in report["tools"].items()) + "."]
+    by = {r["backend"]: r for r in report["results"]}
+    if "icarus" in by and "verilator" in by:
+        icarus, verilator = by["icarus"], by["verilator"]
+        lines.append(f"- cocotb + Verilator runs "
+                     f"{verilator['main']['cycles_per_second'] / icarus['main']['cycles_per_second']:.1f}× "
+                     f"as many cycles a second as cocotb + Icarus.")
+        extra_build = verilator["build_seconds"] - icarus["build_seconds"]
+        gain = 1 / icarus["main"]["cycles_per_second"] - 1 / verilator["main"]["cycles_per_second"]
+        if gain > 0:
+            cycles = extra_build / gain
+            lines.append(f"- Verilator's longer build ({extra_build:.1f} s more than Icarus's) "
+                         f"pays off after {cycles / 1e6:.1f} M simulated cycles "
+                         f"({cycles / icarus['main']['cycles_per_second']:.0f} s of Icarus run "
+                         f"time) at these rates.")
+    return lines
+
+
+# --- sdio_throughput.json ---------------------------------------------------------------
+
+def sdio_throughput(report):
+    r = report["result"]
+    lines = table(["blocks", "SD clocks outside busy", "4-bit bus limit (1024 a block)",
+                   "efficiency", "clocks a block"],
+                  [[r["blocks"], thousands(r["clocks_excluding_busy"]),
+                    thousands(r["bus_limit_clocks"]), f"**{pct(r['efficiency'], 2)} %** "
+                    "(goal ≥ 95 %)", f"{r['clocks_per_block']:.1f}"]], "rrrrr")
+    pauses = r["clock_pauses"]
+    where = "; ".join(
+        f"block {p['block']}, SD clock {thousands(p['edge'])} of the data phase, "
+        f"{p['edges_since_host_released_dat']} clocks after the host released DAT, "
+        f"card {'busy' if p['card_busy'] else 'not busy'}, {p['extra_cycles']} system "
+        f"cycles" for p in r["pauses"])
+    lines += [
+        "",
+        f"Clock pauses (an SD clock period longer than the divisor's "
+        f"{r['sd_clock_period_cycles']} system cycles at {r['sd_clock_hz'] / 1e6:g} MHz from "
+        f"{r['sys_clock_hz'] / 1e6:g} MHz) over the {thousands(r['sd_clock_periods_checked'])} "
+        f"periods of the data phase: {pauses}"
+        + (f" ({where})" if pauses else "")
+        + f"; while the host drove DAT (sending a block): "
+          f"{r['pauses_while_host_drives_dat']}. Busy clocks excluded: "
+          f"{thousands(r['busy_clocks'])}; clocks a block beyond the 1024 of data: "
+          f"{r['clocks_per_block'] - r['bus_limit_clocks'] / r['blocks']:.1f}.",
+    ]
+    return lines
+
+
+# --- sdram_bandwidth.json ---------------------------------------------------------------
+
+def sdram_bandwidth(report):
+    rows = [[r["chip"], r["direction"], thousands(r["clocks"]), r["refreshes"],
+             f"**{pct(r['efficiency'])} %**", f"{r['bytes_per_second'] / 1e6:.1f} MB/s"]
+            for r in report["results"]]
+    return table(["chip", "direction", "clocks", "refreshes", "efficiency", "at 50 MHz"],
+                 rows, "llrrrr") + ["", f"Words per run: {thousands(report['results'][0]['words'])}."]
+
+
+# --- calib.json -------------------------------------------------------------------------
+
+COVERAGE_NAMES = {"full": "full sphere", "uav": "UAV ±30°", "planar": "near-planar ±5°"}
+
+
+def _coverage(name):
+    return COVERAGE_NAMES.get(name, name)
+
+
+def calib_accuracy(report):
+    rows = []
+    for r in report["accuracy"]:
+        scipy = f"{r['scipy_ratio']:.4f}"
+        if r["scipy_ratio"] < 0.5:
+            scipy = (f"**{scipy}** (K diagonal ≤ {max(r['scipy_k_diagonal']):.2g}, \\|c\\| = "
+                     f"{r['scipy_c_norm_nT']:.0f} nT against a reference of "
+                     f"{r['reference_median_nT']:.0f} nT)")
+        rows.append([_coverage(r["coverage"]), f"{r['noise_nT']:g}",
+                     f"{r['maglog_ratio']:.4f}", ms(r["maglog_timing"]["best"]),
+                     ms(r["maglog_timing"]["median"]), scipy, ms(r["scipy_timing"]["best"]),
+                     ms(r["scipy_timing"]["median"])])
+    lines = table(["coverage", "noise (nT)", "maglog PSO+LM ratio", "best", "median",
+                   "scipy `least_squares` (lm) ratio", "best", "median"], rows, "lrrrrrrr")
+    full_uav = [r["maglog_ratio"] for r in report["accuracy"] if r["coverage"] != "planar"]
+    planar = [r["maglog_ratio"] for r in report["accuracy"] if r["coverage"] == "planar"]
+    repeats = report["accuracy"][0]["maglog_timing"]["repeats"]
+    warned = [r for r in report["accuracy"]
+              if any("hardly determines" in w for w in r["maglog_warnings"])]
+    collapsed = [r for r in report["accuracy"] if r["scipy_ratio"] < 0.5]
+
+    def met(ok):
+        return "met" if ok else "**not met**"
+    lines += ["", f"Times: best and median of {repeats} repeats each. maglog's ratio: "
+              f"{min(full_uav):.4f}–{max(full_uav):.4f} on full and UAV coverage (goal ≤ 1.01: "
+              f"{met(max(full_uav) <= 1.01)}), {min(planar):.4f}–{max(planar):.4f} on "
+              f"near-planar (goal ≤ 1.10: {met(max(planar) <= 1.10)}); fits maglog reports "
+              f"unsuccessful: {sum(1 for r in report['accuracy'] if not r['maglog_success'])} "
+              f"of {len(report['accuracy'])}. maglog warns that the coverage hardly determines "
+              f"a combination of parameters (and holds it to the isotropic prior) in "
+              f"{len(warned)} case(s): "
+              + (", ".join(f"{_coverage(r['coverage'])} {r['noise_nT']:g} nT" for r in warned)
+                 or "none")
+              + f". scipy's ratio is below 0.5 (a collapse towards the trivial K = 0, \\|c\\| = r "
+                f"solution) in {len(collapsed)} case(s)."]
+    return lines
+
+
+PSO_NAMES = {"maglog_gbest": "maglog gbest", "maglog_ring": "maglog ring",
+             "pyswarms_gbest": "pyswarms GlobalBestPSO", "pyswarms_ring": "pyswarms LocalBestPSO"}
+
+
+def calib_pso(report):
+    c = report["pso_comparison"]
+    runs = c["runs"]
+    rows = []
+    for key, run in runs.items():
+        name = PSO_NAMES[key.rsplit("_", 1)[0]]
+        s = run["seconds"]
+        rows.append([name, run["kernel"], ms(s["best"]), ms(s["median"]), ms(s["worst"]),
+                     f"{statistics.median(run['best_costs']):.4g}"])
+    lines = table(["optimiser", "cost kernel", "best", "median", "worst",
+                   "median best cost"], rows, "llrrrr")
+    like = [p for p in c["pairings"] if p["like_for_like"]]
+    lines += ["", "Like for like (pyswarms' time / maglog's, same topology and cost kernel):", ""]
+    lines += table(["maglog", "pyswarms", "speed-up (median)", "speed-up (best)"],
+                   [[f"{PSO_NAMES[p['maglog'].rsplit('_', 1)[0]]}, "
+                     f"{p['maglog'].rsplit('_', 1)[1]}",
+                     f"{PSO_NAMES[p['pyswarms'].rsplit('_', 1)[0]]}, "
+                     f"{p['pyswarms'].rsplit('_', 1)[1]}",
+                     f"**{p['speedup_median']:.2f}×**", f"{p['speedup_best']:.2f}×"]
+                    for p in like], "llrr")
+    keys = list(runs)
+    ours = [k for k in keys if k.startswith("maglog_")]
+    theirs = [k for k in keys if k.startswith("pyswarms_")]
+    by_pair = {(p["maglog"], p["pyswarms"]): p for p in c["pairings"]}
+    lines += ["", "Every pairing (median speed-up; rows maglog, columns pyswarms):", ""]
+    lines += table(["maglog \\ pyswarms"] + [f"{PSO_NAMES[t.rsplit('_', 1)[0]]}, "
+                                             f"{t.rsplit('_', 1)[1]}" for t in theirs],
+                   [[f"{PSO_NAMES[o.rsplit('_', 1)[0]]}, {o.rsplit('_', 1)[1]}"] +
+                    [f"{by_pair[(o, t)]['speedup_median']:.2f}×" for t in theirs]
+                    for o in ours], "l" + "r" * len(theirs))
+    st = c["startup"]
+    pys = c["pyswarms_settings"]
+    lines += [
+        "",
+        f"Each run: {c['particles']} particles × {c['iterations']} iterations × "
+        f"{thousands(c['samples'])} samples, {c['repeats']} repeats (seeds 0..{c['repeats'] - 1}), "
+        f"numba on {c['numba_threads']} thread(s) "
+        f"({report['numba_threading']['threading_layer']} layer); pyswarms "
+        f"{c['pyswarms']} with w = {pys['options']['w']:.5f}, c1 = c2 = "
+        f"{pys['options']['c1']:.5f} (maglog: χ = {c['maglog_settings']['chi']}, c1 = c2 = "
+        f"{c['maglog_settings']['c1']} in the constriction form, the same update), "
+        f"LocalBestPSO k = {pys['ring']['k']} (the particle itself and two neighbours), "
+        f"p = {pys['ring']['p']}, static = {pys['static']}.",
+        f"- Velocity clamp: both ± the search range per dimension. Initial velocities: maglog "
+        f"{c['maglog_settings']['initial_velocity']}, pyswarms {pys['initial_velocity']}. "
+        f"Walls: maglog {c['maglog_settings']['walls']}; pyswarms {pys['walls']}. Neighbourhoods: "
+        f"maglog {c['maglog_settings']['neighbourhood']}; pyswarms {pys['neighbourhood']}. Cost evaluations "
+        f"per run: maglog {runs[ours[0]]['cost_evaluations']} (the start and every "
+        f"iteration), pyswarms {runs[theirs[0]]['cost_evaluations']}.",
+        "- Threads: maglog ring on the numba cost with " + ", ".join(
+            f"{t['threads']} thread(s) {ms(t['seconds']['median'])} (median of "
+            f"{t['seconds']['repeats']})" for t in c.get("thread_scaling", [])) + ".",
+        f"- Start-up, timed apart in fresh interpreters: `import pyswarms` "
+        f"{st['pyswarms_import_seconds']:.2f} s; importing maglog's PSO (numba) "
+        f"{st['maglog_pso_import_seconds_cold_cache']:.2f} s; the numba kernel's first call "
+        f"with an empty cache (JIT compile) {st['numba_first_call_seconds_cold_cache']:.2f} s, "
+        f"with the cache filled {st['numba_first_call_seconds_warm_cache']:.2f} s.",
+    ]
+    return lines
+
+
+def calib_timing(report):
+    lm = report["lm_2000_timing"]
+    hour = report["hour_flight"]
+    total = hour["stages"]["total"]
+    fastest = hour["fastest_run_stages"]
+    lines = table(["timing", "best", "median", "worst", "repeats", "goal"], [
+        ["deterministic (LM) fit of 2,000 samples", ms(lm["best"], 2), ms(lm["median"], 2),
+         ms(lm["worst"], 2), lm["repeats"], "≤ 2 ms"],
+        [f"one-hour 50 Hz flight ({thousands(hour['samples'])} samples): log file → parameters",
+         f"{total['best']:.2f} s", f"{total['median']:.2f} s", f"{total['worst']:.2f} s",
+         total["repeats"], "≤ 2 s"]], "lrrrrr")
+    names = {"read": "read the file", "parse": "parse", "align": "align the cesium reference",
+             "pso": "PSO", "polish_and_rest": "polish, uncertainties and checks"}
+    rows = []
+    for key, label in names.items():
+        s = hour["stages"][key]
+        if s is None:
+            rows.append([label, "not measured", "", "", ""])
+            continue
+        rows.append([label, f"{fastest[key]:.3f} s", pct(fastest[key] / fastest["total"], 0)
+                     + " %", f"{s['median']:.3f} s", f"{s['best']:.3f}–{s['worst']:.3f} s"])
+    lines += ["", f"Goals: LM fit ≤ 2 ms (best: {'met' if lm['best'] <= 2e-3 else 'not met'}), "
+              f"hour flight ≤ 2 s (best: {'met' if total['best'] <= 2 else 'not met'}; "
+              f"worst: {'met' if total['worst'] <= 2 else 'not met'})."]
+    lines += ["", f"The hour flight by stage ({hour['log_bytes'] / 2**20:.1f} MiB log, "
+              f"{thousands(hour['samples_fitted'])} samples fitted, RMS "
+              f"{hour['rms_nT']:.2f} nT):", ""]
+    lines += table(["stage", "in the fastest run", "share", "median", "range"], rows,
+                   "lrrrr")
+    return lines
+
+
+def calib_ellipsoid(report):
+    rows = []
+    methods = ["maglog_algebraic", "maglog_constrained", "magyc_ellipsoid_fit",
+               "magyc_ellipsoid_fit_fang"]
+
+    def cell(m):
+        if m is None:
+            return "not run"
+        if "ratio" not in m:
+            return str(next(iter(m.values())))
+        return f"{m['ratio']:.3f} / {m['direction_rms_deg']:.2f}°"
+    for row in report["ellipsoid"]:
+        coverage, _, noise = row["case"].rpartition("_")
+        rows.append([_coverage(coverage), noise] + [cell(row.get(k)) for k in methods])
+    lines = table(["coverage", "noise (nT)", "maglog algebraic",
+                   "maglog constrained (Li–Griffiths)", "magyc `ellipsoid_fit`",
+                   "magyc `ellipsoid_fit_fang`"], rows, "lrllll")
+    times = {k: [row[k]["seconds"] for row in report["ellipsoid"]
+                 if isinstance(row.get(k), dict) and "seconds" in row[k]] for k in methods}
+    lines += ["", "Times per fit (best of 3): " + "; ".join(
+        f"{k.replace('_', ' ', 1)} {ms(min(v), 2)}–{ms(max(v), 2)}" for k, v in times.items()
+        if v) + "."]
+    magyc = [(row["case"], name, row[name]) for row in report["ellipsoid"]
+             for name in methods[2:] if isinstance(row.get(name), dict) and "ratio" in row[name]]
+    if magyc:
+        own = sum(1 for *_, m in magyc if m["returned_field_matches_parameters"])
+        reshaped = sum(1 for *_, m in magyc if m["returned_field_matches_reshaped_input"])
+        direct = [m["soft_iron_used_directly_ratio"] for _, name, m in magyc
+                  if name == "magyc_ellipsoid_fit"]
+        lines += [
+            f"- The calibrated field magyc returns matches its own parameters applied to the "
+            f"samples in {own} of {len(magyc)} fits, and the same parameters applied to the "
+            f"(N, 3) samples reshaped (not transposed) to 3 × N in {reshaped} of "
+            f"{len(magyc)}; the table uses its parameters (calibrated = soft_iron⁻¹ (b − "
+            f"hard_iron)).",
+            f"- `ellipsoid_fit`'s soft-iron matrix used directly instead of inverted: ratio "
+            f"{min(direct):.2f}–{max(direct):.2f}.",
+        ]
+    tally = {"equal": 0, "magyc Fang": 0, "maglog algebraic": 0}
+    for row in report["ellipsoid"]:
+        ours, fang = row.get("maglog_algebraic"), row.get("magyc_ellipsoid_fit_fang")
+        if not (isinstance(ours, dict) and "ratio" in ours and isinstance(fang, dict)
+                and "ratio" in fang):
+            continue
+        a, b = round(abs(ours["ratio"] - 1), 3), round(abs(fang["ratio"] - 1), 3)
+        tally["equal" if a == b else "magyc Fang" if b < a else "maglog algebraic"] += 1
+    lines += [f"- magyc's Fang fit against maglog's algebraic fit, ratio's distance from 1 at "
+              f"the table's precision: equal in {tally['equal']} cases, Fang closer in "
+              f"{tally['magyc Fang']}, maglog closer in {tally['maglog algebraic']}."]
+    ours = [row[k] for row in report["ellipsoid"] for k in methods[:2]
+            if isinstance(row.get(k), dict) and "ratio" in row[k]]
+    lines += [f"- maglog matrices symmetric positive definite: "
+              f"{sum(1 for m in ours if m['positive_definite'])} of {len(ours)}."]
+    return lines
+
+
+def calib_heading(report):
+    rows = [[f"{r['mounting_yaw_deg']:+.0f}°", r["legs"], f"{r['true_offset_deg']:+.2f}°",
+             f"{r['found_offset_deg']:+.2f}° ± {r['found_std_deg']:.2f}°"]
+            for r in report["heading"]]
+    return table(["mounting yaw", "legs", "true offset", "found"], rows, "rrrr")
+
+
+# --- machines ---------------------------------------------------------------------------
+
+def machine(report):
+    m = report["machine"]
+    return table(["", ""], [
+        ["CPU", f"`nproc` {m['nproc']}, \"{m['cpu_model']}\""],
+        ["memory", m["memory_total"]], ["OS", m["platform"]], ["Python", m["python"]]],
+        "ll") + ["", "Tools: " + ", ".join(f"{k} {v}" for k, v in report["tools"].items()) + "."]
+
+
+#: name -> (JSON, renderer)
+BLOCKS = {
+    "machine": ("bench/results/synth.json", machine),
+    "synth-frontend": ("bench/results/synth.json", synth_frontend),
+    "synth-sd": ("bench/results/synth.json", synth_sd),
+    "synth-sdram": ("bench/results/synth.json", synth_sdram),
+    "sim-throughput": ("bench/results/sim_throughput.json", sim_throughput),
+    "sim-throughput-div27": ("bench/results/sim_throughput_div27.json", sim_throughput),
+    "sdio-throughput": ("bench/results/sdio_throughput.json", sdio_throughput),
+    "sdram-bandwidth": ("bench/results/sdram_bandwidth.json", sdram_bandwidth),
+    "calib-accuracy": ("bench/results/calib.json", calib_accuracy),
+    "calib-timing": ("bench/results/calib.json", calib_timing),
+    "calib-pso": ("bench/results/calib.json", calib_pso),
+    "calib-ellipsoid": ("bench/results/calib.json", calib_ellipsoid),
+    "calib-heading": ("bench/results/calib.json", calib_heading),
+}
+
+
+def render(name, root=REPO):
+    """The lines of block ``name``: its content and, last, its provenance line."""
+    source, renderer = BLOCKS[name]
+    report = json.loads((Path(root) / source).read_text())
+    return renderer(report) + ["", provenance_line(report, source)]
+
+
+def regenerate(text, root=REPO):
+    """(the text with every block rendered again, list of problems that are no mere
+    difference: unknown blocks, unclosed blocks, tables or provenance lines outside one)."""
+    lines = text.split("\n")
+    out, problems = [], []
+    k = 0
+    while k < len(lines):
+        line = lines[k]
+        marker = MARKER.match(line)
+        if marker is None:
+            if line.startswith("|"):
+                problems.append(f"line {k + 1}: a table outside a generated block "
+                                f"(no provenance): {line[:60]}")
+            if PROVENANCE.match(line):
+                problems.append(f"line {k + 1}: a provenance line that closes no block")
+            out.append(line)
+            k += 1
+            continue
+        name = marker.group(1)
+        end = next((j for j in range(k + 1, len(lines)) if PROVENANCE.match(lines[j])
+                    or MARKER.match(lines[j])), None)
+        if end is None or MARKER.match(lines[end]):
+            problems.append(f"line {k + 1}: block {name!r} has no provenance line")
+            out.append(line)
+            k += 1
+            continue
+        if name not in BLOCKS:
+            problems.append(f"line {k + 1}: unknown block {name!r}")
+            out += lines[k:end + 1]
+        else:
+            source = PROVENANCE.match(lines[end]).group(1)
+            if source != BLOCKS[name][0]:
+                problems.append(f"line {end + 1}: block {name!r} comes from "
+                                f"{BLOCKS[name][0]}, its provenance names {source}")
+            out += [line] + render(name, root)
+        k = end + 1
+    return "\n".join(out), problems
+
+
+def check(path=RESULTS_MD, root=REPO):
+    """Problems of ``path`` against the JSONs: [] when every block is as rendered."""
+    text = Path(path).read_text()
+    new, problems = regenerate(text, root)
+    if new != text:
+        diff = difflib.unified_diff(text.split("\n"), new.split("\n"), "RESULTS.md",
+                                    "from the JSONs", lineterm="", n=0)
+        problems.append("blocks differ from their JSONs:\n" + "\n".join(diff))
+    return problems
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true",
+                        help="only compare RESULTS.md with the JSONs (exit 1 on a difference)")
+    parser.add_argument("--file", type=Path, default=RESULTS_MD)
+    args = parser.parse_args(argv)
+    if args.check:
+        problems = check(args.file)
+        for problem in problems:
+            print(problem)
+        return 1 if problems else 0
+    new, problems = regenerate(args.file.read_text())
+    args.file.write_text(new)
+    for problem in problems:
+        print(problem)
+    print(f"rewrote the generated blocks of {args.file}")
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
