@@ -11,7 +11,7 @@ from maglog.sw.regmap import RegisterMap
 SECTOR = 512
 
 
-def run(script):
+def run(script, *, extra=()):
     dut = Dma()
     regs = RegisterMap(dut.bus.memory_map)
     out = []
@@ -24,7 +24,8 @@ def run(script):
     async def sink(ctx):
         await collect_payloads(ctx, dut.sd_i, out)
 
-    run_simulation(dut, [firmware], background=[sink], name="dma", deadline=1e-3)
+    run_simulation(dut, [firmware], background=[sink, *(make(dut) for make in extra)],
+                   name="dma", deadline=1e-3)
     return result["value"], out
 
 
@@ -67,6 +68,17 @@ def test_sd_read_data_fills_the_buffer_for_the_cpu():
 
 
 def test_abort_of_a_ring_write_reads_out_the_asked_sector():
+    from_ring = []          # every byte the DMA took from the ring, on any cycle
+
+    def ring_monitor(dut):
+        async def monitor(ctx):
+            while True:
+                _, _, valid, ready, payload = await ctx.tick().sample(
+                    dut.ring_o.valid, dut.ring_o.ready, dut.ring_o.payload)
+                if valid and ready:
+                    from_ring.append(payload)
+        return monitor
+
     async def script(ctx, dut, bus, regs, out):
         await bus.write(regs["control"].address, regs["control"].encode(
             start=1, source=DmaSource.RING.value, sectors=3, first=2))
@@ -75,22 +87,28 @@ def test_abort_of_a_ring_write_reads_out_the_asked_sector():
         # The SD host takes 100 bytes, then the write fails and the firmware aborts.
         ctx.set(dut.ring_reading, 1)
         for k in range(100):
-            ctx.set(dut.ring_o.payload, k & 0xFF)
+            ctx.set(dut.ring_o.payload, k)
             ctx.set(dut.ring_o.valid, 1)
             await ctx.tick().until(dut.ring_o.ready)
+        ctx.set(dut.ring_o.payload, 0xAB)       # what the ring offers from here on
         await bus.write(regs["control"].address, regs["control"].encode(abort=1))
         # The rest of the asked sector is read from the ring and dropped, then the DMA stops.
-        taken = 0
         while regs["status"].decode(await bus.read(regs["status"].address))["busy"]:
-            _, _, ready = await ctx.tick().sample(dut.ring_o.ready)
-            taken += ready
+            await ctx.tick()
         ctx.set(dut.ring_o.valid, 0)
         ctx.set(dut.ring_reading, 0)
         await ctx.tick().repeat(4)
         status = regs["status"].decode(await bus.read(regs["status"].address))
         return asked, status
 
-    (asked, status), out = run(script)
+    (asked, status), out = run(script, extra=[ring_monitor])
     assert asked == 2
     assert status["busy"] == 0 and status["sent"] == 0
-    assert 100 <= len(out) < SECTOR       # what the host took before the abort went through
+    # The ring gave up exactly the asked sector: the bytes before the abort, in order, then
+    # the rest up to the sector's end, and not one byte of the next sector.
+    assert len(from_ring) == SECTOR
+    assert from_ring[:100] == list(range(100))
+    # The SD host got the bytes before the abort went through, and none after it.
+    assert 100 <= len(out) < SECTOR
+    assert list(out) == from_ring[:len(out)]
+    assert from_ring[len(out):] == [0xAB] * (SECTOR - len(out))
