@@ -11,26 +11,34 @@ from pathlib import Path
 from amaranth.sim import Simulator
 
 
-__all__ = ["CLOCK_PERIOD", "run_simulation", "drive_line", "feed_stream", "FrameAssembler",
+__all__ = ["CLOCK_HZ", "CLOCK_PERIOD", "CLOCK_NS", "run_simulation", "drive_line", "feed_stream", "FrameAssembler",
            "collect_frames", "collect_payloads"]
 
-#: Simulated clock period (50 MHz, as the boards' oscillators).
-CLOCK_PERIOD = 20e-9
+#: The simulated system clock of every backend (Amaranth simulator and cocotb): 50 MHz, as
+#: the boards' oscillators. Periods below are derived from it, never written again.
+CLOCK_HZ = 50_000_000
+#: Its period in seconds (Amaranth simulator) ...
+CLOCK_PERIOD = 1 / CLOCK_HZ
+#: ... and in nanoseconds (cocotb's ``Clock`` and ``Timer``).
+CLOCK_NS = 1e9 / CLOCK_HZ
 
 #: Set to a directory to get a VCD of every Amaranth simulation written there.
 VCD_ENV = "MAGLOG_VCD_DIR"
 
 
 def run_simulation(dut, testbenches, *, background=(), name="sim", vcd_dir=None,
-                   deadline=None):
+                   deadline=None, clock_period=CLOCK_PERIOD):
     """Simulate ``dut`` with the given async testbenches (critical) and background ones.
+
+    The clock runs at ``clock_period`` seconds (default :data:`CLOCK_PERIOD`); a test that
+    tells firmware another system clock runs the simulation at that clock too.
 
     A VCD is written into ``vcd_dir`` (or ``$MAGLOG_VCD_DIR``) when one is given: never into
     the working tree by default. ``deadline`` (seconds of simulated time) turns a hang into
     a ``TimeoutError``.
     """
     sim = Simulator(dut)
-    sim.add_clock(CLOCK_PERIOD)
+    sim.add_clock(clock_period)
     for tb in testbenches:
         sim.add_testbench(tb)
     for tb in background:

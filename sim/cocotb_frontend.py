@@ -20,8 +20,7 @@ from cocotb.simtime import get_sim_time
 from cocotb.triggers import ReadOnly, RisingEdge, Timer
 from cocotbext.uart import UartSource
 
-
-CLOCK_NS = 20
+from .amaranth_tb import CLOCK_NS
 
 
 class _LineBit:
@@ -192,7 +191,7 @@ async def run_stimulus(dut):
         "frames": [[channel, frame.hex()] for channel, frame in monitor.frames],
         "counters": _read_counters(dut, n, stimulus["counter_names"]),
         "flushes": flushes[0],
-        "cycles": int(get_sim_time(unit="ns")) // CLOCK_NS,
+        "cycles": round(get_sim_time(unit="ns") / CLOCK_NS),
         "mismatches": monitor.mismatches + monitor.missing(),
     }
     with open(os.environ["MAGLOG_RESULT"], "w") as f:

@@ -5,6 +5,10 @@ Backends: :class:`CsrBus` (the firmware's register bus on the CSR port), :class:
 (the host's byte streams), :func:`run_card` (the card model on the pins: it samples at each
 rising edge of ``sd_clk`` and drives after the falling edge, as a default-speed card).
 Python runs per register access, per byte and per SD clock edge, never per system clock.
+
+The stimulus's ``sys_clock_hz`` is the one figure for the system clock: the simulated clock
+runs at it and the driver is told it, so every SD clock the driver sets is the one the card
+sees. The result reports the fastest SD clock measured during identification.
 """
 
 import json
@@ -17,13 +21,15 @@ from cocotb.clock import Clock
 from cocotb.simtime import get_sim_time
 from cocotb.triggers import FallingEdge, ReadOnly, RisingEdge, Timer
 
+from ..hw.arch.sd import CardState
 from ..sw.bus import BlockPort as _BlockPort
 from ..sw.bus import RegisterBus
 
 
-__all__ = ["CsrBus", "BlockPort", "run_card"]
+__all__ = ["CsrBus", "BlockPort", "ClockMeter", "run_card"]
 
-CLOCK_NS = 20
+#: The card states of identification mode (PLSS §4.2, at most 400 kHz); it ends with CMD3.
+IDENTIFICATION_STATES = (CardState.IDLE, CardState.READY, CardState.IDENT)
 
 
 class CsrBus(RegisterBus):
@@ -60,7 +66,7 @@ class CsrBus(RegisterBus):
 
     async def wait(self, seconds):
         cycles = max(1, round(seconds / self._period))
-        await Timer(cycles * CLOCK_NS, unit="ns")
+        await Timer(cycles * round(self._period * 1e12), unit="ps")
         await FallingEdge(self._dut.clk)
         self._cycles += cycles
 
@@ -124,11 +130,33 @@ class BlockPort(_BlockPort):
         return data
 
 
-async def run_card(dut, card):
-    """The card model on the pins (see the module documentation)."""
+class ClockMeter:
+    """The shortest SD clock period seen while the card is in identification mode."""
+    def __init__(self):
+        self.shortest_ns = None
+        self._last_ns = None
+
+    def rising_edge(self, card):
+        now = get_sim_time(unit="ns")
+        if self._last_ns is not None and card.state in IDENTIFICATION_STATES:
+            period = now - self._last_ns
+            self.shortest_ns = period if self.shortest_ns is None else min(self.shortest_ns,
+                                                                           period)
+        self._last_ns = now
+
+    @property
+    def fastest_hz(self):
+        return None if self.shortest_ns is None else 1e9 / self.shortest_ns
+
+
+async def run_card(dut, card, meter=None):
+    """The card model on the pins (see the module documentation); ``meter`` (a
+    :class:`ClockMeter`) sees every rising edge of the SD clock."""
     card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
     while True:
         await RisingEdge(dut.sd_clk)
+        if meter is not None:
+            meter.rising_edge(card)
         await ReadOnly()
         host_cmd_oe = int(dut.sd_cmd_oe.value)
         host_dat_oe = int(dut.sd_dat_oe.value)
@@ -159,7 +187,8 @@ async def write_read_back(dut):
     logging.getLogger("cocotb").setLevel(logging.WARNING)
     with open(os.environ["MAGLOG_STIMULUS"]) as f:
         stimulus = json.load(f)
-    Clock(dut.clk, CLOCK_NS, unit="ns", impl="gpi").start()
+    sys_clock_hz = stimulus["sys_clock_hz"]
+    Clock(dut.clk, round(1e12 / sys_clock_hz), unit="ps", impl="gpi").start()
     dut.sd_cmd_i.value = 1
     dut.sd_dat_i.value = 0xF
     dut.bus__r_stb.value = 0
@@ -173,10 +202,10 @@ async def write_read_back(dut):
     image = CardImage(stimulus["capacity"])
     card = SdCard(image, seed=stimulus["seed"], faults=Faults(**stimulus.get("faults", {})))
     port = BlockPort(dut)
-    cocotb.start_soon(run_card(dut, card))
+    meter = ClockMeter()
+    cocotb.start_soon(run_card(dut, card, meter))
     cocotb.start_soon(port.source())
     cocotb.start_soon(port.sink())
-    sys_clock_hz = stimulus["sys_clock_hz"]
     bus = CsrBus(dut, clock_period_s=1 / sys_clock_hz)
     driver = SdCardDriver(bus, RegisterMap(SdioHost().bus.memory_map), port,
                           sys_clock_hz=sys_clock_hz)
@@ -198,7 +227,10 @@ async def write_read_back(dut):
         result["mismatches"].append(f"{type(error).__name__}: {error}")
     result.update(card_errors=card.errors, retries=driver.retries,
                   blocks_stored=card.blocks_stored,
-                  cycles=int(get_sim_time(unit="ns")) // CLOCK_NS)
+                  cycles=round(get_sim_time(unit="ns") * 1e-9 * sys_clock_hz),
+                  identification_clock_hz=meter.fastest_hz,
+                  commands=[[t.command, t.argument, t.note] for t in card.log
+                            if hasattr(t, "command")])
     image.save(os.path.join(os.path.dirname(os.environ["MAGLOG_RESULT"]), "card.img"))
     with open(os.environ["MAGLOG_RESULT"], "w") as f:
         json.dump(result, f)

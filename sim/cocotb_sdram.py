@@ -14,8 +14,8 @@ from cocotb.clock import Clock
 from cocotb.triggers import ReadOnly, RisingEdge
 
 from ..hw.arch import sdram as arch
+from .amaranth_tb import CLOCK_HZ, CLOCK_NS
 
-CLOCK_NS = 20
 _PINS = ("cke", "cs_n", "ras_n", "cas_n", "we_n", "ba", "a", "dqm", "dq_oe")
 
 
@@ -37,7 +37,7 @@ async def random_traffic(dut):
         stimulus = json.load(f)
     chip = arch.CHIPS[stimulus["chip"]]
     g = chip.geometry
-    model = SdramChip(chip, clk_freq=1e9 / CLOCK_NS, strict=False)
+    model = SdramChip(chip, clk_freq=CLOCK_HZ, strict=False)
     Clock(dut.clk, CLOCK_NS, unit="ns", impl="gpi").start()
     dut.i__valid.value = 0
     dut.rst.value = 1

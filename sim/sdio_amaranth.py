@@ -9,7 +9,8 @@ __all__ = ["CsrBus", "StreamBlockPort", "run_card"]
 
 
 class CsrBus(RegisterBus):
-    """Register access through a CSR bus (one 32-bit word per address)."""
+    """Register access through a CSR bus (one 32-bit word per address); ``clock_period`` is
+    the simulation's (see :func:`~maglog.sim.amaranth_tb.run_simulation`)."""
     def __init__(self, ctx, bus, *, clock_period=CLOCK_PERIOD):
         self._ctx, self._bus, self._period = ctx, bus, clock_period
         self._cycles = 0
@@ -39,7 +40,7 @@ class CsrBus(RegisterBus):
     async def wait(self, seconds):
         cycles = max(1, round(seconds / self._period))
         # One delay instead of a tick per cycle, then back onto a clock edge.
-        await self._ctx.delay((cycles - 1) * CLOCK_PERIOD)
+        await self._ctx.delay((cycles - 1) * self._period)
         await self._ctx.tick()
         self._cycles += cycles
 
@@ -49,13 +50,15 @@ class CsrBus(RegisterBus):
 
 class StreamBlockPort(BlockPort):
     """The host's byte streams, fed and drained by background testbenches (:meth:`source`,
-    :meth:`sink`); the firmware queues and takes bytes (:meth:`attach` its context first)."""
+    :meth:`sink`); the firmware queues and takes bytes (:meth:`attach` its context first).
+    ``clock_period`` is the simulation's."""
 
     #: Cycles between looks at an empty outgoing queue.
     IDLE_POLL = 32
 
-    def __init__(self, host):
+    def __init__(self, host, *, clock_period=CLOCK_PERIOD):
         self._host = host
+        self._period = clock_period
         self._outgoing = bytearray()
         self._incoming = bytearray()
         self._ctx = None
@@ -70,7 +73,7 @@ class StreamBlockPort(BlockPort):
                 ctx.set(stream.valid, 0)
                 # (a plain delay, not tick().repeat(): an async generator still running when
                 # the simulation ends is reported as an unraisable exception)
-                await ctx.delay(self.IDLE_POLL * CLOCK_PERIOD)
+                await ctx.delay(self.IDLE_POLL * self._period)
                 await ctx.tick()
                 continue
             ctx.set(stream.payload, self._outgoing[0])

@@ -3,9 +3,9 @@
 The firmware (sw/sdcard.py) runs unchanged over the CSR bus backend; the card model
 (sim/models/sdcard.py) sits on the host's pins and records every protocol violation.
 
-The system clock is simulated at 50 MHz cycles, but the driver is told 4 MHz: its
-identification clock (≤ 400 kHz) is then 6 system cycles a bit instead of 126, which keeps
-the test fast; the card model sees only clock edges, so nothing else changes.
+The system clock is 4 MHz here, for the simulation and the driver alike (``SYS_CLOCK_HZ``):
+the identification clock (≤ 400 kHz) is then 10 system cycles a bit instead of 126 at the
+board's 50 MHz, which keeps the test fast; the data clock runs at 2 MHz instead of 25.
 """
 
 import random
@@ -13,6 +13,7 @@ import random
 import pytest
 
 from maglog.hw.arch import sd as arch
+from maglog.hw.arch.sd import CardState
 from maglog.hw.sdio.host import SdioHost
 from maglog.sim.amaranth_tb import run_simulation
 from maglog.sim.models.card_image import CardImage
@@ -21,14 +22,17 @@ from maglog.sim.sdio_amaranth import CsrBus, StreamBlockPort, run_card
 from maglog.sw.regmap import RegisterMap
 from maglog.sw.sdcard import SdCardDriver, SdNoCard, SdTimeout, SdWriteError
 
+#: The system clock: the simulation runs at it and the driver is told it.
 SYS_CLOCK_HZ = 4e6
+#: PLSS §4.2 (f_OD): the identification clock is at most 400 kHz.
+IDENT_CLOCK_MAX_HZ = 400e3
 CAPACITY = 1 << 16      # blocks (32 MiB), sparse
 
 
-def run(firmware, card, *, deadline=0.2):
+def run(firmware, card, *, deadline=0.2, extra=()):
     host = SdioHost()
     regs = RegisterMap(host.bus.memory_map)
-    port = StreamBlockPort(host)
+    port = StreamBlockPort(host, clock_period=1 / SYS_CLOCK_HZ)
     outcome = {}
 
     async def fw(ctx):
@@ -44,8 +48,9 @@ def run(firmware, card, *, deadline=0.2):
     async def card_side(ctx):
         await run_card(ctx, host, card)
 
-    run_simulation(host, [fw], background=[card_side, port.source, port.sink],
-                   name="sdio_host", deadline=deadline)
+    run_simulation(host, [fw], background=[card_side, port.source, port.sink,
+                                           *(make(host) for make in extra)],
+                   name="sdio_host", deadline=deadline, clock_period=1 / SYS_CLOCK_HZ)
     return outcome
 
 
@@ -55,12 +60,31 @@ def new_card(**kwargs):
 
 def test_identification():
     card = new_card()
+    periods = []            # system cycles between SD clock rising edges in identification
+
+    def clock_meter(host):
+        async def meter(ctx):
+            last, since = 0, None           # cycles since the last rising edge
+            while card.state in (CardState.IDLE, CardState.READY, CardState.IDENT):
+                _, _, level = await ctx.tick().sample(host.sd_clk)
+                if since is not None:
+                    since += 1
+                if level and not last:
+                    if since is not None:
+                        periods.append(since)
+                    since = 0
+                last = level
+        return meter
 
     async def firmware(driver):
         return await driver.initialise()
 
-    out = run(firmware, card)
+    out = run(firmware, card, extra=[clock_meter])
     assert "error" not in out, out.get("error")
+    # The identification clock, measured on the SD clock's edges (one system cycle is
+    # 1 / SYS_CLOCK_HZ: the simulation runs at the clock the driver was told).
+    assert len(periods) > 500
+    assert 0.9 * IDENT_CLOCK_MAX_HZ < SYS_CLOCK_HZ / min(periods) <= IDENT_CLOCK_MAX_HZ
     info = out["value"]
     assert info.high_capacity and info.rca == card.rca != 0
     assert info.cid == card.cid >> 1
@@ -86,9 +110,20 @@ def test_write_and_read_back():
     assert out["value"] == [one, many[:512], many[-512:]]
     assert card.image.read_block(100) == one
     assert b"".join(card.image.read_block(2000 + k) for k in range(5)) == many
-    assert card.pre_erase_count is None or card.pre_erase_count >= 0
     assert card.errors == []
     assert out["driver"].retries == 0
+    # The five-block write was announced by ACMD23 with its count, and the card applied it
+    # to the CMD25 that followed; the single block went out as CMD24 without one.
+    commands = [t for t in card.log if hasattr(t, "command")]
+    names = [t.command for t in commands]
+    multi = names.index("CMD25")
+    assert names[multi - 2:multi] == ["CMD55", "ACMD23"]
+    assert commands[multi - 1].argument == 5 and commands[multi].argument == 2000
+    assert commands[multi].note == "LBA 2000, pre-erase count 5"
+    assert names.count("ACMD23") == names.count("CMD25") == 1
+    single = names.index("CMD24")
+    assert commands[single].argument == 100 and names[single - 1] != "ACMD23"
+    assert card.pre_erase_count is None         # used up by that CMD25
 
 
 @pytest.mark.parametrize("faults", [
