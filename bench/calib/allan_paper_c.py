@@ -158,8 +158,35 @@ def summary(runs, path):
             "resolved_in": len(values), "of": len(runs)}
 
 
+def compare(truth, expected, first, stats):
+    """The paper's Q and B beside ours: truth, each method's before and after (first seed,
+    with tau ranges) and the reductions (first seed; mean and std over the seeds)."""
+    rows = {}
+    for term in ("quantisation", "bias_instability"):
+        row = {"paper": {"before": PAPER["before"][term], "after": PAPER["after"][term],
+                         "reduction_percent": PAPER["reduction_percent"][term]},
+               "truth": truth.get(term), "expected_after_at_long_tau": expected[term]}
+        for method in ("slope_regions", "sum_model"):
+            for stage, key in (("after", method),
+                               ("after_beyond_10_time_constants",
+                                method + "_beyond_10_time_constants")):
+                b, a = first["before"][method][term], first[stage][method][term]
+                row[key] = {"before": b["value"], "before_tau_range_s": b["tau_range_s"],
+                            "after": a["value"], "after_tau_range_s": a["tau_range_s"],
+                            "reduction_percent": first["reduction_percent"][key][term],
+                            "reduction_percent_over_seeds":
+                                stats[f"reduction_percent.{key}.{term}"]}
+        b, a = first["before"]["single_point"][term], first["after"]["single_point"][term]
+        row["single_point"] = {
+            "before": b, "after": a,
+            "reduction_percent": first["reduction_percent"]["single_point"][term],
+            "reduction_percent_over_seeds": stats[f"reduction_percent.single_point.{term}"]}
+        rows[term] = row
+    return rows
+
+
 def fmt(value, digits=4):
-    return "not res." if value is None else f"{value:.{digits}g}"
+    return "-" if value is None else f"{value:.{digits}g}"
 
 
 def main(argv=None):
@@ -176,7 +203,7 @@ def main(argv=None):
     gain = gain_for_variance_ratio(ratio)
     q_over_r = gain ** 2 / (1 - gain)
     started = time.perf_counter()
-    scenarios = {}
+    scenarios, comparison = {}, {}
     for name, truth in signals(n).items():
         runs = [run_one(truth, n, seed, q_over_r) for seed in range(args.seeds)]
         stats = {}
@@ -194,7 +221,15 @@ def main(argv=None):
             for term in ("quantisation", "bias_instability"):
                 stats[f"reduction_percent.{method}.{term}"] = summary(
                     runs, ("reduction_percent", method, term))
-        scenarios[name] = {"truth": truth, "first_seed": runs[0], "over_seeds": stats}
+        # What the steady-state filter (x += g (z - x), unity gain at DC) should leave at
+        # tau >> its time constant: white phase noise comes out white with variance
+        # g / (2 - g) of the input's, white and flicker rate noise unchanged.
+        expected = {"quantisation": truth.get("quantisation", 0.0) * np.sqrt(gain / (2 - gain)),
+                    "random_walk": truth.get("random_walk", 0.0),
+                    "bias_instability": truth.get("bias_instability", 0.0)}
+        scenarios[name] = {"truth": truth, "expected_after_at_long_tau": expected,
+                           "first_seed": runs[0], "over_seeds": stats}
+        comparison[name] = compare(truth, expected, runs[0], stats)
     elapsed = time.perf_counter() - started
 
     print(f"0.1 s sampling, {args.minutes:g} min series, {args.seeds} seeds; filter "
@@ -204,32 +239,39 @@ def main(argv=None):
         first, truth, stats = (scenario["first_seed"], scenario["truth"],
                                scenario["over_seeds"])
         print(f"\n{name}: truth " + ", ".join(f"{k} {v:.4g}" for k, v in truth.items()))
-        print(f"  {'term, method':30s}{'truth':>10s}{'before':>14s}{'after':>14s}"
-              f"{'after >=10T':>14s}{'change %':>10s}  {'over seeds':>16s}  tau ranges (s)")
+        print(f"  {'term, method':34s}{'truth':>10s}{'before':>11s}{'after':>11s}"
+              f"{'>=10T':>11s}{'chg %':>8s}{'>=10T %':>8s}  {'chg % over seeds':>19s}"
+              f"{'>=10T % over seeds':>20s}  tau ranges (s)")
         stages = ("before", "after", "after_beyond_10_time_constants")
         for method in ("slope_regions", "sum_model"):
             for term in TERMS_SHOWN:
                 fields = [first[stage][method][term] for stage in stages]
-                change = reduction(fields[0]["value"], fields[1]["value"])
-                over = stats[f"reduction_percent.{method}.{term}"] if term in (
-                    "quantisation", "bias_instability") else None
-                over = ("" if over is None or over["mean"] is None else
-                        f"{over['mean']:+.1f}+-{over['std']:.1f} ({over['resolved_in']})")
+                changes = [reduction(fields[0]["value"], f["value"]) for f in fields[1:]]
+                overs = []
+                for key in (method, method + "_beyond_10_time_constants"):
+                    over = stats.get(f"reduction_percent.{key}.{term}")
+                    overs.append("" if over is None or over["mean"] is None else
+                                 f"{over['mean']:+.1f}+-{over['std']:.1f} "
+                                 f"({over['resolved_in']})")
                 ranges = " | ".join("-" if f["tau_range_s"] is None else
                                     "%.3g-%.3g" % tuple(f["tau_range_s"]) for f in fields)
-                print(f"  {term + ', ' + method:30s}{fmt(truth.get(term)):>10s}"
-                      + "".join(f"{fmt(f['value']):>14s}" for f in fields)
-                      + f"{fmt(change):>10s}  {over:>16s}  {ranges}")
+                print(f"  {term + ', ' + method:34s}{fmt(truth.get(term)):>10s}"
+                      + "".join(f"{fmt(f['value']):>11s}" for f in fields)
+                      + "".join(f"{fmt(c, 3):>8s}" for c in changes)
+                      + f"  {overs[0]:>19s}{overs[1]:>20s}  {ranges}")
         for term in ("quantisation", "bias_instability"):
             b, a = first["before"]["single_point"][term], first["after"]["single_point"][term]
             over = stats[f"reduction_percent.single_point.{term}"]
             over = f"{over['mean']:+.1f}+-{over['std']:.1f} ({over['resolved_in']})"
-            print(f"  {term + ', single point':30s}{fmt(truth.get(term)):>10s}{fmt(b):>14s}"
-                  f"{fmt(a):>14s}{'':>14s}{fmt(reduction(b, a)):>10s}  {over:>16s}")
-        print(f"  {'mean':30s}{'0':>10s}{fmt(first['before']['mean']):>14s}"
-              f"{fmt(first['after']['mean']):>14s}")
-        print(f"  {'variance':30s}{'':>10s}{fmt(first['before']['variance']):>14s}"
-              f"{fmt(first['after']['variance']):>14s}")
+            print(f"  {term + ', single point':34s}{fmt(truth.get(term)):>10s}{fmt(b):>11s}"
+                  f"{fmt(a):>11s}{'':>11s}{fmt(reduction(b, a), 3):>8s}{'':>8s}  {over:>19s}")
+        print(f"  {'mean':34s}{'0':>10s}{fmt(first['before']['mean']):>11s}"
+              f"{fmt(first['after']['mean']):>11s}")
+        print(f"  {'variance':34s}{'':>10s}{fmt(first['before']['variance']):>11s}"
+              f"{fmt(first['after']['variance']):>11s}")
+        print("  expected at tau >> T after the filter: "
+              + ", ".join(f"{k} {v:.4g}" for k, v in scenario["expected_after_at_long_tau"]
+                          .items() if v))
     print(f"\npaper: Q {PAPER['before']['quantisation']} -> {PAPER['after']['quantisation']}"
           f" (-82.8 %), B {PAPER['before']['bias_instability']} -> "
           f"{PAPER['after']['bias_instability']} (-77.9 %), variance 1.3717 -> 0.0129")
@@ -242,7 +284,7 @@ def main(argv=None):
                                  "Q = R g^2 / (1 - g) with g / (2 - g) = 0.0129 / 1.3717",
                          "q_over_r": q_over_r, "steady_state_gain": gain,
                          "time_constant_s": (1 - gain) / gain / RATE},
-                 scenarios=scenarios, elapsed_s=round(elapsed, 2))
+                 comparison=comparison, scenarios=scenarios, elapsed_s=round(elapsed, 2))
 
 
 if __name__ == "__main__":
