@@ -91,8 +91,9 @@ class AllanResult:
 
     ``terms`` are the slope-region fits (the answer); ``model`` the weighted NNLS fit of
     the sum of the five terms, with each term's range where it is at least half the model
-    variance and the curve's slope agrees with the model's. ``quantisation`` and ``bias_instability`` are the slope-region values (NaN
-    when not resolved); ``tau_min`` is where the curve is lowest."""
+    variance and the curve's slope agrees with the model's. ``quantisation`` and
+    ``bias_instability`` are the slope-region values (NaN when not resolved); ``tau_min``
+    is where the curve is lowest."""
     taus: np.ndarray            # seconds
     deviation: np.ndarray       # overlapping Allan deviation, in the data's unit
     counts: np.ndarray          # number of (overlapping) second differences per tau
