@@ -28,6 +28,9 @@ REPO = Path(__file__).resolve().parent.parent
 #: The benchmarks' own outputs: not source that ran, so left out of the source hash (they
 #: still appear in ``git status --porcelain`` when modified).
 OUTPUTS = ("bench/results/",)
+#: Environment variables recorded with the command: they change what code or how it runs.
+COMMAND_ENVIRONMENT = ("PYTHONPATH", "NUMBA_NUM_THREADS", "OMP_NUM_THREADS",
+                       "MAGLOG_PEERS_PYTHON")
 #: How every provenance line in bench/RESULTS.md starts: ``Provenance (<json path>): ...``.
 PROVENANCE_PREFIX = "Provenance ("
 
@@ -167,7 +170,9 @@ def command_line(argv):
         python = python.relative_to(REPO)
     except ValueError:
         pass
-    return shlex.join([str(python), str(script), *argv])
+    # Environment that changes what runs (a module path, numba's threads) goes first.
+    env = [f"{name}={os.environ[name]}" for name in COMMAND_ENVIRONMENT if name in os.environ]
+    return shlex.join([*env, str(python), str(script), *argv])
 
 
 #: The state the benchmark started from (this module is imported at its start).
@@ -193,7 +198,9 @@ def write_report(path, benchmark, argv, load_start, tools, **fields):
         "benchmark": benchmark,
         "date": _START["date"], "date_end": now(),
         "command": command_line(sys.argv[1:] if argv is None else list(argv)),
-        "command_exact": {"argv": [sys.executable, *sys.argv], "cwd": os.getcwd()},
+        "command_exact": {"argv": [sys.executable, *sys.argv], "cwd": os.getcwd(),
+                          "environment": {name: os.environ.get(name)
+                                          for name in COMMAND_ENVIRONMENT}},
         "machine": machine(),
         "load_average": {"start": load_start if load_start is not None else _START["load"],
                          "end": load()},

@@ -292,7 +292,8 @@ def calib_pso(report):
         f"{c['pyswarms']} with w = {pys['options']['w']:.5f}, c1 = c2 = "
         f"{pys['options']['c1']:.5f} (maglog: χ = {c['maglog_settings']['chi']}, c1 = c2 = "
         f"{c['maglog_settings']['c1']} in the constriction form, the same update), "
-        f"LocalBestPSO k = {pys['ring']['k']} (the particle itself and two neighbours), "
+        f"LocalBestPSO k = {pys['ring']['k']} (the particle itself and "
+        f"{pys['ring']['k'] - 1} neighbours), "
         f"p = {pys['ring']['p']}, static = {pys['static']}.",
         f"- Velocity clamp: both ± the search range per dimension. Initial velocities: maglog "
         f"{c['maglog_settings']['initial_velocity']}, pyswarms {pys['initial_velocity']}. "
