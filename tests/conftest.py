@@ -66,8 +66,14 @@ class External:
         return found
 
     def simulator(self, backend):
-        """The tool of a cocotb backend (``icarus`` → iverilog, ``verilator``)."""
-        from maglog.sim.cocotb_run import COCOTB_SIMULATORS
+        """The tool of a cocotb backend (``icarus`` → iverilog on PATH; ``verilator`` → this
+        Python environment's own, the one :mod:`maglog.sim.cocotb_run` builds with)."""
+        from maglog.sim.cocotb_run import COCOTB_SIMULATORS, verilator_bin_dir
+        if backend == "verilator":
+            try:
+                return str(verilator_bin_dir() / "verilator")
+            except RuntimeError as error:
+                missing(f"{error} (the verilator cocotb backend)")
         return self.tool(COCOTB_SIMULATORS[backend], why=f"the {backend} cocotb backend")
 
     def shared_data(self):

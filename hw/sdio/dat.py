@@ -83,7 +83,7 @@ class DatWriter(wiring.Component):
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.crc = crc = Crc16Lanes(LANES)
+        m.submodules.crc16 = crc = Crc16Lanes(LANES)
 
         state   = Signal(_WState)
         count   = Signal(range(arch.DATA_NIBBLES + 1))
@@ -266,7 +266,7 @@ class DatReader(wiring.Component):
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.crc = crc = Crc16Lanes(LANES)
+        m.submodules.crc16 = crc = Crc16Lanes(LANES)
 
         state   = Signal(_RState)
         count   = Signal(range(arch.DATA_NIBBLES + 1))

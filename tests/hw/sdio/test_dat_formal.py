@@ -137,7 +137,7 @@ class ProbedDatWriter(DatWriter):
     them. They are found by name among the signals its elaborated fragment assigns
     (``Fragment.statements``, walked through assignments' ``lhs`` and switches' ``cases``);
     a renamed or missing one is an error here, not a silently weaker proof. The CRC
-    registers are the ``crc`` ports of its ``crc`` submodule, and the values of ``state``
+    registers are the ``crc`` ports of its ``crc16`` submodule, and the values of ``state``
     are its (private) enum ``_WState``. After elaboration, ``probes`` holds ``state``,
     ``count``, ``left``, ``byte``, ``loaded``, ``low``, ``crc`` (one signal per line), the
     writer's own ``dat_o`` and ``dat_oe`` registers, ``nibbles`` (the block length it was
@@ -152,7 +152,7 @@ class ProbedDatWriter(DatWriter):
 
     def elaborate(self, platform):
         m = super().elaborate(platform)
-        crc = m.submodules.crc
+        crc = m.submodules.crc16
         fragment = Fragment.get(m, platform)
         found = {name: {} for name in self.PROBED}
         for domain in ("sync", "comb"):
