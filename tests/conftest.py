@@ -94,6 +94,13 @@ class External:
             missing(f"no GPS captures in {self.shared_data() / 'nmea'}")
         return files
 
+    def capture(self, name):
+        """The capture file called ``name`` (e.g. ``"hemi.log"``) of the shared data folder."""
+        by_name = {path.name: path for path in self.captures()}
+        if name not in by_name:
+            missing(f"capture {name} is not in {self.shared_data() / 'nmea'}")
+        return by_name[name]
+
     def sby(self, bin_dir):
         """The yowasp SymbiYosys tools (see :mod:`maglog.sim.formal`)."""
         from maglog.sim import formal

@@ -2,8 +2,8 @@
 
 The images are made by independent tools (``mkfs.fat``, ``mcopy``, ``mmd``, ``mdel``) in
 ``tmp_path``; every corruption is a byte patch at an offset this file computes from the
-BPB itself (not from the reader under test). The tests skip when the tools are missing
-(``scripts/setup.sh`` installs them; CI has them).
+BPB itself (not from the reader under test). Without the tools the tests skip, and fail
+under CI=true (the ``fat_tools`` fixture; ``scripts/setup.sh`` installs them).
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import random
 import re
-import shutil
 import struct
 import subprocess
 import time
@@ -26,14 +25,15 @@ from maglog.calib.card import (
 )
 
 
-_SEARCH = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"])
-TOOLS = {name: shutil.which(name, path=_SEARCH)
-         for name in ("mkfs.fat", "mcopy", "mmd", "mdel")}
-pytestmark = pytest.mark.skipif(
-    not all(TOOLS.values()),
-    reason="building FAT32 images needs mkfs.fat (dosfstools) and mcopy/mmd/mdel (mtools), "
-           "missing: " + ", ".join(n for n, p in TOOLS.items() if not p)
-           + " (scripts/setup.sh installs them)")
+#: name → path of the FAT tools, filled from the ``fat_tools`` fixture (tests/conftest.py:
+#: a skip with the reason when one is missing, a failure under CI=true).
+TOOLS = {}
+
+
+@pytest.fixture(autouse=True)
+def _fat_tools(fat_tools):
+    TOOLS.update(fat_tools)
+
 
 SECTOR = 512
 FS_KIB = 64 * 1024              # 64 MiB file system: with -s 1 a legal FAT32 (> 65524 clusters)

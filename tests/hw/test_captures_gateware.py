@@ -5,27 +5,26 @@ and the whole front end (UART receivers included) on Verilator under cocotb, wit
 spread over four NMEA channels and a break between files on a line.
 """
 
-import os
-import shutil
-
 import pytest
 
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
-from maglog.sim.captures import DATA_ENV_VAR, capture_files, load_capture
+from maglog.sim.captures import capture_files, load_capture
 from maglog.sim.frontend_run import ChannelStimulus, FrontEndBench, Segments
 from maglog.sim.frontend_run import run_frame_filter as run_filter
 from maglog.sim.reference import reference_filter
 
-CAPTURES = capture_files()
-NO_DATA = (f"no GPS captures: the shared data folder (../shared/data beside the repository, "
-           f"or ${DATA_ENV_VAR}) is absent")
-FILES = [pytest.param(path, id=path.name) for path in CAPTURES] or [
-    pytest.param(None, marks=pytest.mark.skip(reason=NO_DATA), id="no-data")]
+#: One test per capture; without any, one test that ends through ``external.captures()``
+#: (a skip that says why, a failure under CI=true).
+FILES = [pytest.param(path, id=path.name) for path in capture_files()] or [
+    pytest.param(None, id="no-data")]
 
 
 @pytest.mark.parametrize("path", FILES)
-def test_capture_through_frame_filter(path):
+def test_capture_through_frame_filter(path, external):
+    if path is None:
+        external.captures()
+        pytest.fail("capture_files() found no captures, external.captures() found some")
     stream = load_capture(path)
     frames, counters, flushes = run_filter(ChannelKind.NMEA, list(stream))
     ref = reference_filter("nmea", stream)
@@ -42,14 +41,10 @@ BREAK = Segments([(0, 16 * 12), (1, 16 * 2)])
 
 
 @pytest.mark.cocotb
-@pytest.mark.skipif(not CAPTURES, reason=NO_DATA)
-def test_all_captures_through_the_front_end_on_verilator(tmp_path):
-    if shutil.which("verilator") is None:
-        message = "verilator is not on PATH; run `make test`"
-        if os.environ.get("CI") == "true":
-            pytest.fail(message)
-        pytest.skip(message)
-    streams = {path.name: load_capture(path) for path in CAPTURES}
+def test_all_captures_through_the_front_end_on_verilator(external, tmp_path):
+    captures = external.captures()
+    external.simulator("verilator")
+    streams = {path.name: load_capture(path) for path in captures}
     # Spread the files over the lines, biggest first, onto the least loaded line.
     lines = [[] for _ in range(LINES)]
     for name in sorted(streams, key=lambda n: -len(streams[n])):

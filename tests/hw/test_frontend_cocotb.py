@@ -5,39 +5,28 @@ error and faults); the cocotb scoreboard checks each channel's frames in order a
 reference filter's, and the counters are compared here.
 """
 
-import os
 import random
-import shutil
 
 import pytest
 
 from maglog.hw.frontend import DEFAULT_CHANNELS
 from maglog.sim import sentences
+from maglog.sim.cocotb_run import COCOTB_SIMULATORS
 from maglog.sim.frontend_run import ChannelStimulus, FrontEndBench, Segments
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.streams import demo_streams
 from maglog.sim.uart_line import encode
 
-SIMULATORS = ("icarus", "verilator")
-TOOL = {"icarus": "iverilog", "verilator": "verilator"}
+SIMULATORS = tuple(COCOTB_SIMULATORS)
 NAMES = ("mag", "gps", "cesium")
 KINDS = [Kind(c.kind.value) for c in DEFAULT_CHANNELS]
 
 pytestmark = pytest.mark.cocotb
 
 
-def require(simulator):
-    if shutil.which(TOOL[simulator]) is None:
-        message = (f"{TOOL[simulator]} is not on PATH; run `make test` (scripts/setup.sh "
-                   f"installs and links it)")
-        if os.environ.get("CI") == "true":
-            pytest.fail(message)
-        pytest.skip(message)
-
-
 @pytest.fixture(scope="module", params=SIMULATORS)
-def bench(request, tmp_path_factory):
-    require(request.param)
+def bench(request, external, tmp_path_factory):
+    external.simulator(request.param)
     bench = FrontEndBench(DEFAULT_CHANNELS, backend=request.param,
                           build_dir=tmp_path_factory.mktemp(f"frontend_{request.param}"))
     bench.build()
@@ -63,8 +52,8 @@ def test_demo_flight_scoreboard(bench):
 
 
 @pytest.mark.parametrize("simulator", SIMULATORS)
-def test_output_backpressure_keeps_frames_whole(simulator, tmp_path):
-    require(simulator)
+def test_output_backpressure_keeps_frames_whole(simulator, external, tmp_path):
+    external.simulator(simulator)
     streams = demo_streams(seconds=1.0, seed=4)
     data = [streams[name] for name in NAMES]
     bench = FrontEndBench(DEFAULT_CHANNELS, backend=simulator, build_dir=tmp_path,

@@ -7,9 +7,11 @@ import pytest
 
 from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
 from maglog.hw.sdram import SdramController
+from maglog.sim.amaranth_tb import CLOCK_HZ
 from maglog.sim.sdram_amaranth import run_requests
 
-CLK_FREQ = 50e6
+#: The simulated clock, which the controller and the chip model time their rules by.
+CLK_FREQ = CLOCK_HZ
 
 
 def traffic(rng, geometry, count, *, sequential=False):
@@ -91,16 +93,10 @@ def test_parameters_are_checked():
 
 @pytest.mark.cocotb
 @pytest.mark.parametrize("simulator", ["icarus", "verilator"])
-def test_controller_verilog_against_the_model_under_cocotb(simulator, tmp_path):
-    import os
-    import shutil
+def test_controller_verilog_against_the_model_under_cocotb(simulator, external, tmp_path):
     from amaranth.back import verilog
-    from maglog.sim.cocotb_run import COCOTB_SIMULATORS, CocotbBuild
-    if shutil.which(COCOTB_SIMULATORS[simulator]) is None:
-        message = f"{simulator} is not on PATH; run `make test`"
-        if os.environ.get("CI") == "true":
-            pytest.fail(message)
-        pytest.skip(message)
+    from maglog.sim.cocotb_run import CocotbBuild
+    external.simulator(simulator)
     chip = IS42S16160
     build = CocotbBuild(simulator, tmp_path, "maglog_sdram")
     build.build(verilog.convert(SdramController(chip, clk_freq=CLK_FREQ, cas_latency=3),

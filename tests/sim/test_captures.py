@@ -1,7 +1,8 @@
 """Tests for maglog.sim.captures, and every real GPS capture through the reference filter.
 
 The captures are read from the shared data folder beside the repository; when it is absent
-the capture tests skip with the reason.
+the capture tests end through the ``external`` fixture: a skip with the reason on a
+developer's machine, a failure under CI=true.
 """
 
 from __future__ import annotations
@@ -18,11 +19,6 @@ from maglog.sim.captures import DATA_ENV_VAR, capture_files, load_capture, share
 from maglog.sim.reference import COUNTER_NAMES, Kind, reference_filter
 
 MAX_FRAME = 128
-CAPTURES = capture_files()
-NO_DATA = (
-    f"no GPS captures: shared data folder not found (set {DATA_ENV_VAR} or put shared/data "
-    "beside the repository)"
-)
 
 #: A whole kept NMEA frame, from DESIGN.md: no "$" inside, printable ASCII, *hh, line end.
 KEEPABLE = re.compile(rb"\$[A-Z]{2}(?:GGA|ZDA|VTG),[\x20-\x23\x25-\x7e]*\*(?P<hh>[0-9A-Fa-f]{2})\r?\n")
@@ -91,17 +87,19 @@ def test_default_location_is_beside_the_repository(monkeypatch: pytest.MonkeyPat
 # --- the captures through the reference ---------------------------------------------------
 
 
-def test_captures_present_or_skip() -> None:
-    if not CAPTURES:
-        pytest.skip(NO_DATA)
-    assert all(path.suffix == ".log" for path in CAPTURES)
-    assert CAPTURES == sorted(CAPTURES)
+def test_captures_present(external) -> None:
+    captures = external.captures()
+    assert all(path.suffix == ".log" for path in captures)
+    assert captures == sorted(captures)
 
 
-@pytest.mark.parametrize("path", CAPTURES or [None], ids=lambda p: p.name if p else "no-data")
-def test_capture_through_reference(path: Path | None) -> None:
+#: One test per capture; without any, one test that ends through ``external.captures()``.
+@pytest.mark.parametrize("path", capture_files() or [None],
+                         ids=lambda p: p.name if p else "no-data")
+def test_capture_through_reference(path: Path | None, external) -> None:
     if path is None:
-        pytest.skip(NO_DATA)
+        external.captures()
+        pytest.fail("capture_files() found no captures, external.captures() found some")
     raw = path.read_bytes()
     stream = load_capture(path)
     assert raw.endswith(stream) and not stream.startswith(b"#")
@@ -117,15 +115,10 @@ def test_capture_through_reference(path: Path | None) -> None:
     assert result.counters["uart_error"] == 0 and result.counters["overflow"] == 0
 
 
-def test_known_captures() -> None:
-    by_name = {path.name: path for path in CAPTURES}
-    if not by_name:
-        pytest.skip(NO_DATA)
-
+def test_known_captures(external) -> None:
     def run(name: str):
-        if name not in by_name:
-            pytest.skip(f"capture {name} not in {shared_data_dir()}")
-        return reference_filter(Kind.NMEA, load_capture(by_name[name]), max_frame=MAX_FRAME)
+        return reference_filter(Kind.NMEA, load_capture(external.capture(name)),
+                                max_frame=MAX_FRAME)
 
     navika = run("navika-100-fix.log")  # has a fix: every GGA flushes
     ggas = [f for f in navika.frames if f[3:6] == b"GGA"]
