@@ -301,9 +301,12 @@ def calib_pso(report):
         f"maglog {c['maglog_settings']['neighbourhood']}; pyswarms {pys['neighbourhood']}. Cost evaluations "
         f"per run: maglog {runs[ours[0]]['cost_evaluations']} (the start and every "
         f"iteration), pyswarms {runs[theirs[0]]['cost_evaluations']}.",
-        "- Threads: maglog ring on the numba cost with " + ", ".join(
+    ]
+    if c.get("thread_scaling"):
+        lines.append("- Threads: maglog ring on the numba cost with " + ", ".join(
             f"{t['threads']} thread(s) {ms(t['seconds']['median'])} (median of "
-            f"{t['seconds']['repeats']})" for t in c.get("thread_scaling", [])) + ".",
+            f"{t['seconds']['repeats']})" for t in c["thread_scaling"]) + ".")
+    lines += [
         f"- Start-up, timed apart in fresh interpreters: `import pyswarms` "
         f"{st['pyswarms_import_seconds']:.2f} s; importing maglog's PSO (numba) "
         f"{st['maglog_pso_import_seconds_cold_cache']:.2f} s; the numba kernel's first call "
@@ -319,7 +322,7 @@ def calib_timing(report):
     total = hour["stages"]["total"]
     fastest = hour["fastest_run_stages"]
     lines = table(["timing", "best", "median", "worst", "repeats", "goal"], [
-        ["deterministic (LM) fit of 2,000 samples", ms(lm["best"], 2), ms(lm["median"], 2),
+        ["deterministic fit of 2,000 samples (`method=\"lm\"`, no PSO)", ms(lm["best"], 2), ms(lm["median"], 2),
          ms(lm["worst"], 2), lm["repeats"], "≤ 2 ms"],
         [f"one-hour 50 Hz flight ({thousands(hour['samples'])} samples): log file → parameters",
          f"{total['best']:.2f} s", f"{total['median']:.2f} s", f"{total['worst']:.2f} s",
@@ -365,7 +368,7 @@ def calib_ellipsoid(report):
     times = {k: [row[k]["seconds"] for row in report["ellipsoid"]
                  if isinstance(row.get(k), dict) and "seconds" in row[k]] for k in methods}
     lines += ["", "Times per fit (best of 3): " + "; ".join(
-        f"{k.replace('_', ' ', 1)} {ms(min(v), 2)}–{ms(max(v), 2)}" for k, v in times.items()
+        f"{k.replace('_', ' ', 1)} {min(v) * 1e3:.2f}–{ms(max(v), 2)}" for k, v in times.items()
         if v) + "."]
     magyc = [(row["case"], name, row[name]) for row in report["ellipsoid"]
              for name in methods[2:] if isinstance(row.get(name), dict) and "ratio" in row[name]]
