@@ -7,9 +7,16 @@ declination; alignment to GPS course over ground on straight, level legs; errors
 known attitude when one is given) → report.
 """
 
+import dataclasses
 import datetime
 import html
 import json
+import math
+import numbers
+import os
+import shutil
+import tempfile
+import warnings as _warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,16 +31,125 @@ from .noise import allan_deviation
 from .scalar import PARAMETERS, apply_scalar, calibrate_scalar
 
 
-__all__ = ["CalibrationError", "CalibrationRun", "HeadingAnalysis", "calibrate_card",
-           "read_attitude", "write_report"]
+__all__ = ["CalibrationError", "ReportError", "CalibrationRun", "HeadingAnalysis",
+           "REFERENCE_RANGE_NT", "SEED_RANGE", "IGRF_DATES", "ALTITUDE_RANGE_M",
+           "check_reference", "check_seed", "check_output_dir", "calibrate_card",
+           "read_attitude", "write_report", "report_files"]
 
 ATTITUDE_COLUMNS = ("t", "roll_deg", "pitch_deg", "heading_deg")
 
 METHODS = ("pso", "lm", "ellipsoid")
 
+#: The total fields the design calibrates against, nT (inclusive). Earth's field is about
+#: 20,000-70,000 nT at the surface; the range is generous (a survey near a strong anomaly,
+#: a laboratory coil) but physical: below it a "field" is an offset or a unit mistake
+#: (``--ref 5`` gave K ~ 1e-4 and "converged"), above it no magnetometer of this kind
+#: reads and the squares lose precision (``--ref 1e308`` ended in LinAlgError).
+REFERENCE_RANGE_NT = (1_000.0, 1_000_000.0)
+#: PSO seeds accepted (inclusive). numpy's ``default_rng`` takes any non-negative integer
+#: (it raises ValueError for negative ones); the cap keeps a seed to 39 digits, printable
+#: in a report and comparable between runs.
+SEED_RANGE = (0, 2**128 - 1)
+#: The dates IGRF-14 (ppigrf's coefficients) defines: its models start in 1900 and its
+#: secular variation ends in 2030. Outside it the field is an extrapolation nobody made.
+IGRF_DATES = (datetime.date(1900, 1, 1), datetime.date(2030, 1, 1))
+#: GPS altitudes (m above mean sea level) at which IGRF is used for an airborne survey:
+#: the deepest land and sea surface to the top of a sounding balloon's flight. A fix outside
+#: is a receiver's error, not a place to evaluate a main-field model.
+ALTITUDE_RANGE_M = (-1_000.0, 100_000.0)
+#: The magnetometer's median |B| may differ from the reference's by at most this factor
+#: (a strong hard iron moves it, a unit mistake moves it by 1000).
+SCALE_MISMATCH = 10.0
+#: A sample whose residual is this many robust standard deviations (1.4826 MAD) from the
+#: median, and at least OUTLIER_FLOOR_NT, is reported as an outlier.
+OUTLIER_SIGMAS = 10.0
+OUTLIER_FLOOR_NT = 10.0
+#: Free space a report needs: its plots and text (a few hundred KiB) with a margin.
+REPORT_SPACE_BYTES = 4 << 20
+
 
 class CalibrationError(Exception):
     """The data cannot be calibrated as asked (said why)."""
+
+
+class ReportError(CalibrationError):
+    """The report folder cannot be written (said where and why, one line)."""
+
+
+def check_reference(value):
+    """The reference as :func:`calibrate_card` takes it: ``"cesium"``, ``"igrf"``, or a
+    total field in nT (a number, or its text) within :data:`REFERENCE_RANGE_NT`.
+    Returns the name or the float; raises :class:`CalibrationError` saying why not."""
+    if isinstance(value, str):
+        if value in ("cesium", "igrf"):
+            return value
+        try:
+            number = float(value)
+        except ValueError:
+            raise CalibrationError(f"reference must be cesium, igrf or a total field in nT, "
+                                   f"not {value!r}") from None
+    elif isinstance(value, numbers.Real) and not isinstance(value, bool):
+        number = float(value)
+    else:
+        raise CalibrationError(f"reference must be cesium, igrf or a total field in nT, not "
+                               f"{value!r}")
+    low, high = REFERENCE_RANGE_NT
+    if not low <= number <= high:       # NaN fails too
+        raise CalibrationError(f"a reference field must be {low:,.0f}..{high:,.0f} nT (Earth's "
+                               f"field is about 20,000-70,000 nT), not {value!r}")
+    return number
+
+
+def check_seed(value):
+    """The PSO seed: an integer (or its text) within :data:`SEED_RANGE`; raises
+    :class:`CalibrationError` saying why not."""
+    low, high = SEED_RANGE
+    if isinstance(value, str):
+        text = value.strip()
+        digits = text.lstrip("+-")
+        if not digits.isdigit() or len(digits) > len(str(high)):
+            raise CalibrationError(f"a seed must be an integer {low}..2**128-1, not {value!r}")
+        number = int(text)
+    elif isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        number = int(value)
+    else:
+        raise CalibrationError(f"a seed must be an integer {low}..2**128-1, not {value!r}")
+    if not low <= number <= high:
+        raise CalibrationError(f"a seed must be an integer {low}..2**128-1, not {value!r}")
+    return number
+
+
+def check_output_dir(path):
+    """Make sure a report can be written into folder ``path`` before any work is done:
+    creates it (and its parents) when missing, writes and removes a probe file, and checks
+    the free space. Returns the folder as a Path; raises :class:`ReportError` (one line)."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise ReportError(f"{out}: exists and is not a folder (the report needs a folder)") \
+            from None
+    except OSError as error:
+        raise ReportError(f"{out}: cannot create the report folder: "
+                          f"{_reason(error)}") from None
+    if not out.is_dir():
+        raise ReportError(f"{out}: is not a folder (the report needs a folder)")
+    try:
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".maglog-probe-") as probe:
+            probe.write(b"maglog")
+            probe.flush()
+        free = shutil.disk_usage(out).free
+    except OSError as error:
+        raise ReportError(f"{out}: cannot write into the report folder: "
+                          f"{_reason(error)}") from None
+    if free < REPORT_SPACE_BYTES:
+        raise ReportError(f"{out}: only {free // 1024} KiB free; a report needs about "
+                          f"{REPORT_SPACE_BYTES >> 20} MiB")
+    return out
+
+
+def _reason(error):
+    return error.strerror or str(error) or type(error).__name__
 
 
 @dataclass
@@ -48,6 +164,7 @@ class CalibrationRun:
     parsed: object
     vectors: np.ndarray        # calibrated field vectors (N, 3), nT
     heading: "HeadingAnalysis"
+    notes: list = field(default_factory=list)   # what the pipeline left out or assumed
 
     @property
     def calibrated(self):
@@ -58,6 +175,13 @@ class CalibrationRun:
     def residual(self):
         return self.calibrated - self.r
 
+    @property
+    def warnings(self):
+        """Everything the user must know about this result: the pipeline's notes (samples
+        left out, dates assumed), then the fit's warnings (not converged, at a bound, poorly
+        determined)."""
+        return list(self.notes) + list(getattr(self.result, "warnings", []))
+
     def summary(self):
         raw = np.linalg.norm(self.b, axis=1) - self.r
         out = {"log": self.log_name, "samples": int(len(self.b)), "reference": self.reference,
@@ -67,13 +191,13 @@ class CalibrationRun:
                "log_report": _jsonable(vars(self.parsed.report))}
         if self.method == "ellipsoid":
             res = self.result
-            out.update(fit=res.method, warnings=list(res.warnings),
-                       center_nT=res.center.tolist(), W=res.W.tolist(),
+            out.update(fit=res.method, center_nT=res.center.tolist(), W=res.W.tolist(),
                        W_eigenvalues=np.linalg.eigvalsh(res.W).tolist(),
                        coverage=res.coverage.report(), success=res.success,
                        message=res.message)
         else:
             out.update(self.result.as_dict())
+        out["warnings"] = self.warnings
         if self.heading is not None:
             out["heading"] = self.heading.as_dict(self.t)
         return out
@@ -132,14 +256,18 @@ class HeadingAnalysis:
 
 
 def _jsonable(value):
+    """Plain JSON values: NaN and infinities become null (JSON has neither; a bare NaN
+    made parameters.json unreadable to strict parsers)."""
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
+    if isinstance(value, (list, tuple, np.ndarray)):
         return [_jsonable(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
     if isinstance(value, (np.integer,)):
         return int(value)
-    if isinstance(value, (np.floating,)):
-        return float(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
     if isinstance(value, (datetime.date, datetime.datetime)):
         return value.isoformat()
     return value
@@ -150,11 +278,62 @@ def _axis(parsed_t, lines):
     return parsed_t if np.all(np.isfinite(parsed_t)) else lines.astype(float)
 
 
-def _reference(parsed, ref, mag_axis, use_time):
+def _igrf_date(parsed):
+    """The date IGRF is evaluated at, and what the report says about it; CalibrationError
+    when the log's date lies outside :data:`IGRF_DATES`."""
+    date = parsed.date or datetime.date(2026, 1, 1)
+    first, last = IGRF_DATES
+    if not first <= date < last:
+        raise CalibrationError(f"the log's date {date.isoformat()} (from its ZDA) is outside "
+                               f"IGRF-14's {first.year}-{last.year}")
+    dated = "" if parsed.date else " (no ZDA date: 2026-01-01 assumed)"
+    return datetime.datetime(date.year, date.month, date.day), dated
+
+
+def _igrf_fixes(parsed, notes):
+    """GGA fixes IGRF may be evaluated at: a fix, a finite position and an altitude within
+    :data:`ALTITUDE_RANGE_M` (the others are left out, and said)."""
+    gga = parsed.gga
+    fixed = (gga.quality > 0) & np.isfinite(gga.lat) & np.isfinite(gga.lon)
+    low, high = ALTITUDE_RANGE_M
+    with np.errstate(invalid="ignore"):
+        plausible = (gga.altitude >= low) & (gga.altitude <= high)
+    good = fixed & plausible
+    dropped = int(np.count_nonzero(fixed & ~plausible))
+    if dropped:
+        notes.append(f"{dropped} of {int(fixed.sum())} GPS fixes have no altitude or one "
+                     f"outside {low:,.0f}..{high:,.0f} m: left out of IGRF")
+    return good
+
+
+def _cesium_in_range(parsed, notes):
+    """The parsed log with the cesium readings outside :data:`REFERENCE_RANGE_NT` left out
+    (0 nT: the sensor had no lock), said in ``notes``."""
+    ces = parsed.cesium
+    low, high = REFERENCE_RANGE_NT
+    good = (ces.field >= low) & (ces.field <= high)
+    if np.all(good):
+        return parsed
+    bad = ces.field[~good]
+    values = ", ".join(f"{v:g}" for v in np.unique(bad)[:3])
+    if not np.any(good):
+        raise CalibrationError(f"{parsed.name}: every cesium reading is outside "
+                               f"{low:,.0f}..{high:,.0f} nT ({values} nT: no lock?); use "
+                               "--ref igrf or a value")
+    notes.append(f"{int(bad.size)} of {len(ces)} cesium readings outside "
+                 f"{low:,.0f}..{high:,.0f} nT ({values} nT: no lock?) left out of the "
+                 "reference")
+    kept = type(ces)(ces.line[good], ces.field[good], ces.signal[good], ces.t[good])
+    return dataclasses.replace(parsed, cesium=kept)
+
+
+def _reference(parsed, ref, mag_axis, use_time, notes):
     mag = parsed.mag
-    if isinstance(ref, (int, float)):
-        return np.full(len(mag), float(ref)), f"constant {float(ref):g} nT"
+    if not isinstance(ref, str):
+        value = check_reference(ref)
+        return np.full(len(mag), value), f"constant {value:g} nT"
     if ref == "cesium":
+        parsed = _cesium_in_range(parsed, notes)
         ces = parsed.cesium
         if len(ces) < 2:
             raise CalibrationError("the log has fewer than 2 cesium samples; use --ref igrf "
@@ -167,20 +346,23 @@ def _reference(parsed, ref, mag_axis, use_time):
     if ref == "igrf":
         import ppigrf
         gga = parsed.gga
-        good = gga.quality > 0
-        if not np.any(good):
+        if not np.any(gga.quality > 0):
             raise CalibrationError("the log has no GGA with a fix: IGRF needs a position")
-        date = parsed.date or datetime.date(2026, 1, 1)
-        when = datetime.datetime(date.year, date.month, date.day)
+        when, dated = _igrf_date(parsed)
+        good = _igrf_fixes(parsed, notes)
+        if not np.any(good):
+            raise CalibrationError("no GPS fix with a position and a plausible altitude "
+                                   f"({ALTITUDE_RANGE_M[0]:,.0f}..{ALTITUDE_RANGE_M[1]:,.0f} m): "
+                                   "IGRF needs one")
         east, north, up = ppigrf.igrf(gga.lon[good], gga.lat[good],
                                       gga.altitude[good] / 1000.0, when)
         total = np.sqrt(np.ravel(east) ** 2 + np.ravel(north) ** 2 + np.ravel(up) ** 2)
         axis = gga.t[good] if use_time else gga.line[good].astype(float)
-        dated = "" if parsed.date else " (no ZDA date: 2026-01-01 assumed)"
-        return (np.interp(mag_axis, axis, total),
+        # np.interp needs increasing abscissae: fixes whose time went back are left out.
+        axis, first = np.unique(axis, return_index=True)
+        return (np.interp(mag_axis, axis, total[first]),
                 f"IGRF-14 at the GPS position, {when:%Y-%m-%d}{dated}")
-    raise CalibrationError(f"reference must be cesium, igrf or a field value in nT, "
-                           f"not {ref!r}")
+    return check_reference(ref), None       # raises: not a reference
 
 
 def read_attitude(path):
@@ -231,19 +413,24 @@ def read_attitude(path):
 def _declination(parsed):
     import ppigrf
     gga = parsed.gga
-    good = (gga.quality > 0) & np.isfinite(gga.lat) & np.isfinite(gga.lon)
-    if not np.any(good):
+    fixed = (gga.quality > 0) & np.isfinite(gga.lat) & np.isfinite(gga.lon)
+    if not np.any(fixed):
         return np.nan, "no GPS fix: headings are magnetic"
-    lat, lon = float(np.mean(gga.lat[good])), float(np.mean(gga.lon[good]))
-    altitude = float(np.nanmean(gga.altitude[good])) if np.any(
-        np.isfinite(gga.altitude[good])) else 0.0
-    date = parsed.date or datetime.date(2026, 1, 1)
-    east, north, _ = ppigrf.igrf(lon, lat, altitude / 1000.0,
-                                 datetime.datetime(date.year, date.month, date.day))
+    try:
+        when, dated = _igrf_date(parsed)
+    except CalibrationError as error:
+        return np.nan, f"{error}: headings are magnetic"
+    notes = []
+    plausible = _igrf_fixes(parsed, notes)
+    lat, lon = float(np.mean(gga.lat[fixed])), float(np.mean(gga.lon[fixed]))
+    # The declination hardly depends on the altitude: without a plausible one, sea level.
+    altitude = float(np.mean(gga.altitude[plausible])) if np.any(plausible) else 0.0
+    east, north, _ = ppigrf.igrf(lon, lat, altitude / 1000.0, when)
     value = float(np.degrees(np.arctan2(np.ravel(east)[0], np.ravel(north)[0])))
-    dated = "" if parsed.date else ", no ZDA date: 2026-01-01 assumed"
+    dated = dated.replace(" (", ", ").rstrip(")")
+    left_out = f"; {notes[0]}" if notes else ""
     return value, (f"IGRF-14 at {lat:.5f}, {lon:.5f}, {altitude:.0f} m, "
-                   f"{date:%Y-%m-%d}{dated}")
+                   f"{when:%Y-%m-%d}{dated}{left_out}")
 
 
 def _heading(parsed, t, use_time, vectors, attitude):
@@ -294,10 +481,25 @@ def _heading(parsed, t, use_time, vectors, attitude):
 
 def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None):
     """Calibrate the largest log on a card image (or partition image, or plain log).
-    ``attitude`` is an optional attitude file (:func:`read_attitude`)."""
-    attitude = None if attitude is None else read_attitude(attitude)
+    ``attitude`` is an optional attitude file (:func:`read_attitude`).
+
+    Bad input ends in a :class:`CalibrationError` (or :class:`~maglog.calib.card.CardError`
+    from the card reader) that says what is wrong and where; a result that is usable but
+    doubtful (not converged, samples left out, a date assumed) lists why in
+    :attr:`CalibrationRun.warnings`. Nothing is printed."""
+    ref = check_reference(ref)
+    seed = check_seed(seed)
     if method not in METHODS:
         raise CalibrationError(f"method must be one of {', '.join(METHODS)}, not {method!r}")
+    attitude = None if attitude is None else read_attitude(attitude)
+    with _warnings.catch_warnings(), np.errstate(all="ignore"):
+        # Library warnings (numpy on a degenerate stretch, matplotlib) are not the user's
+        # business: whatever matters is in the result's warnings.
+        _warnings.simplefilter("ignore")
+        return _calibrate(path, ref, method, seed, attitude)
+
+
+def _calibrate(path, ref, method, seed, attitude):
     logs = read_logs(path)
     if not logs:
         raise CalibrationError(f"{path}: no LOG*.TXT file found")
@@ -307,34 +509,75 @@ def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None):
     if len(mag) < len(PARAMETERS) + 1:
         raise CalibrationError(f"{name}: only {len(mag)} magnetometer samples; at least "
                                f"{len(PARAMETERS) + 1} are needed")
+    notes = []
     use_time = bool(np.all(np.isfinite(mag.t)))
     mag_axis = mag.t if use_time else mag.line.astype(float)
-    r, reference = _reference(parsed, ref, mag_axis, use_time)
+    r, reference = _reference(parsed, ref, mag_axis, use_time, notes)
     keep = np.isfinite(r)
     if keep.sum() < len(PARAMETERS) + 1:
         raise CalibrationError(f"{name}: the reference covers only {int(keep.sum())} "
                                f"magnetometer samples")
     b, r = mag.b[keep], r[keep]
     t = mag.t[keep] if use_time else mag_axis[keep]
-    if method == "ellipsoid":
-        result = fit_ellipsoid(b, float(np.median(r)))
-        if not result.success and result.coverage.complete:
-            # The algebraic quadric is not an ellipsoid: the constrained fit always is.
-            result = fit_ellipsoid(b, float(np.median(r)), method="constrained")
-            result.warnings.append("the algebraic fit gave no ellipsoid: constrained "
-                                   "(Li-Griffiths) fit used")
-        if not result.success:
-            raise CalibrationError(f"{name}: ellipsoid fit refused: {result.message}")
-        vectors = (b - result.center) @ result.W.T
-    else:
-        result = calibrate_scalar(b, r, method=method, seed=seed)
-        vectors = apply_scalar(result.K, result.c, b)
-    return CalibrationRun(log_name=name, t=t, b=b, r=r, reference=reference, method=method,
-                          result=result, parsed=parsed, vectors=vectors,
-                          heading=_heading(parsed, t, use_time, vectors, attitude))
+    _check_scale(name, b, r)
+    try:
+        if method == "ellipsoid":
+            result = fit_ellipsoid(b, float(np.median(r)))
+            if not result.success and result.coverage.complete:
+                # The algebraic quadric is not an ellipsoid: the constrained fit always is.
+                result = fit_ellipsoid(b, float(np.median(r)), method="constrained")
+                result.warnings.append("the algebraic fit gave no ellipsoid: constrained "
+                                       "(Li-Griffiths) fit used")
+            if not result.success:
+                raise CalibrationError(f"{name}: ellipsoid fit refused: {result.message}")
+            vectors = (b - result.center) @ result.W.T
+        else:
+            result = calibrate_scalar(b, r, method=method, seed=seed)
+            vectors = apply_scalar(result.K, result.c, b)
+    except ValueError as error:
+        # The fits' own checks of what samples can determine (a stuck axis, too few
+        # distinct vectors): said with the log's name.
+        raise CalibrationError(f"{name}: {error}") from None
+    except np.linalg.LinAlgError as error:
+        raise CalibrationError(f"{name}: the {method} fit is numerically singular ({error}): "
+                               "the samples do not determine it") from None
+    if not np.all(np.isfinite(vectors)):
+        raise CalibrationError(f"{name}: the {method} fit gave no finite calibration")
+    run = CalibrationRun(log_name=name, t=t, b=b, r=r, reference=reference, method=method,
+                         result=result, parsed=parsed, vectors=vectors,
+                         heading=_heading(parsed, t, use_time, vectors, attitude), notes=notes)
+    before = float(np.sqrt(np.mean((np.linalg.norm(b, axis=1) - r) ** 2)))
+    after = float(np.sqrt(np.mean(run.residual ** 2)))
+    if not after < before:
+        notes.append(f"the calibration did not reduce the total-field RMS ({before:.3g} nT "
+                     f"before, {after:.3g} nT after): the model does not fit these data")
+    residual = run.residual - np.median(run.residual)
+    spread = max(OUTLIER_SIGMAS * 1.4826 * float(np.median(np.abs(residual))),
+                 OUTLIER_FLOOR_NT)
+    outliers = int(np.count_nonzero(np.abs(residual) > spread))
+    if outliers:
+        notes.append(f"{outliers} of {len(residual)} samples lie more than {spread:.3g} nT "
+                     f"({OUTLIER_SIGMAS:g} robust standard deviations) off the fit: spikes "
+                     "or bad samples in the log; the residual RMS is mostly theirs")
+    return run
 
 
-def _plots(run, out):
+def _check_scale(name, b, r):
+    """The magnetometer and the reference must measure the same field in the same unit."""
+    raw = float(np.median(np.linalg.norm(b, axis=1)))
+    field_nt = float(np.median(r))
+    if not raw > 0:
+        raise CalibrationError(f"{name}: the magnetometer reads 0 nT (median |B|): "
+                               "disconnected?")
+    ratio = raw / field_nt
+    if not 1 / SCALE_MISMATCH <= ratio <= SCALE_MISMATCH:
+        raise CalibrationError(
+            f"{name}: the magnetometer's median |B| ({raw:.4g} nT) is {ratio:.3g} times the "
+            f"reference's ({field_nt:.4g} nT), more than {SCALE_MISMATCH:g} times off: not "
+            "in nT, or not the same field")
+
+
+def _plots(run, out, staged):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -343,10 +586,15 @@ def _plots(run, out):
 
     def save(fig, key, title):
         fig.axes[0].set_title(title)
-        fig.tight_layout()
+        # Fixed margins: tight_layout drew every figure twice (a third of a report's time).
+        width, height = fig.get_size_inches()
+        fig.subplots_adjust(left=0.9 / width, right=1 - 0.25 / width, bottom=0.6 / height,
+                            top=1 - 0.4 / height)
         files[key] = out / f"{key}.png"
-        fig.savefig(files[key], dpi=110)
-        plt.close(fig)
+        try:
+            fig.savefig(_stage(staged, files[key]), dpi=110, format="png")
+        finally:
+            plt.close(fig)
 
     raw = np.linalg.norm(run.b, axis=1)
     fig, ax = plt.subplots(figsize=(9, 4))
@@ -416,7 +664,7 @@ def _heading_lines(analysis, t):
         lines += [f"| {leg.start:.1f} | {leg.duration:.0f} | {leg.course:.1f} | "
                   f"{leg.speed:.1f} | {diff:+.2f} |" for leg, diff in align.legs]
         lines.append("")
-        lines += [f"> warning: {w}" for w in align.warnings]
+        lines += [f"- warning: {w}" for w in align.warnings]
     before, after = analysis.errors()
     if before is not None:
         good = np.isfinite(before)
@@ -434,74 +682,75 @@ def _heading_lines(analysis, t):
     return lines + [""]
 
 
-def _html(lines):
-    """The report's Markdown subset as HTML: headings, lists, tables, code blocks, quotes
-    and images."""
-    out, table, code = [], [], None
+#: The plots a report may hold (heading_error and allan only when there is data for them).
+PLOTS = ("figure7", "coverage", "residuals", "allan", "heading_error")
+#: The text files of a report.
+TEXT_FILES = ("report.md", "report.html", "parameters.json")
 
-    def cells(row):
-        return [html.escape(c.strip()) for c in row.strip().strip("|").split("|")]
-
-    def flush_table():
-        if table:
-            head, *rows = [r for r in table if not set(r) <= set("|-: ")]
-            out.append("<table><tr>" + "".join(f"<th>{c}</th>" for c in cells(head))
-                       + "</tr>" + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in cells(r))
-                                           + "</tr>" for r in rows) + "</table>")
-            table.clear()
-
-    for line in lines:
-        if code is not None:
-            if line.startswith("```"):
-                out.append("<pre>" + html.escape("\n".join(code)) + "</pre>")
-                code = None
-            else:
-                code.append(line)
-            continue
-        if line.startswith("|"):
-            table.append(line)
-            continue
-        flush_table()
-        if line.startswith("```"):
-            code = []
-        elif line.startswith("#"):
-            level = len(line) - len(line.lstrip("#"))
-            out.append(f"<h{level}>{html.escape(line[level:].strip())}</h{level}>")
-        elif line.startswith("!["):
-            out.append(f'<p><img src="{html.escape(line[line.index("(") + 1:-1])}"></p>')
-        elif line.startswith("- "):
-            out.append(f"<li>{html.escape(line[2:])}</li>")
-        elif line.startswith("> "):
-            out.append(f"<blockquote>{html.escape(line[2:])}</blockquote>")
-        elif line:
-            out.append(f"<p>{html.escape(line)}</p>")
-    flush_table()
-    return "\n".join(out)
+_PAGE = """<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>{title}</title>
+<style>table{{border-collapse:collapse}}td,th{{border:1px solid #bbb;padding:2px 6px}}</style>
+</head>
+<body>
+{body}
+</body>
+</html>
+"""
 
 
-def write_report(run, out_dir):
-    """Markdown, HTML, PNGs and a JSON of the parameters; returns the paths."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    summary = run.summary()
-    files = _plots(run, out)
-    (out / "parameters.json").write_text(json.dumps(_jsonable(summary), indent=2))
+def report_files():
+    """Every file name :func:`write_report` may write into its folder (and the only ones it
+    removes when a rerun does not write them again)."""
+    return TEXT_FILES + tuple(f"{key}.png" for key in PLOTS)
+
+
+def _html(markdown_text, title):
+    """The report's Markdown as a full HTML document (Python-Markdown, tables and fenced
+    code). Raw HTML in the text (a log name, a bad line's bytes quoted in a message) is
+    shown as text, never interpreted."""
+    import markdown
+    md = markdown.Markdown(extensions=["tables", "fenced_code"], output_format="html")
+    md.preprocessors.deregister("html_block")
+    md.inlinePatterns.deregister("html")
+    md.inlinePatterns.deregister("entity")
+    return _PAGE.format(title=html.escape(title), body=md.convert(markdown_text))
+
+
+def _stage(staged, final):
+    """A temporary file beside ``final`` to write into; moved over ``final`` when the whole
+    report is written (see :func:`write_report`)."""
+    fd, temp = tempfile.mkstemp(dir=final.parent, prefix=f".{final.name}.", suffix=".tmp")
+    os.close(fd)
+    staged[final] = Path(temp)
+    return staged[final]
+
+
+def _report_lines(run, summary, files):
     lines = [f"# Calibration of {run.log_name}", "",
              f"- method: {run.method}; reference: {run.reference}; samples: {len(run.b)}",
              f"- total-field RMS against the reference: {summary['rms_before_nT']:.2f} nT "
-             f"before, {summary['rms_after_nT']:.2f} nT after", ""]
+             f"before, {summary['rms_after_nT']:.2f} nT after"]
+    res = run.result
     if run.method != "ellipsoid":
-        res = run.result
+        lines.append(f"- fit: {res.message} ({res.solver} polish, {res.nit} PSO iterations "
+                     "and evaluations)")
+    else:
+        lines.append(f"- fit: {res.method} ellipsoid, {res.message}")
+    lines.append("")
+    if run.warnings:
+        lines += ["## Warnings", ""] + [f"- {warning}" for warning in run.warnings] + [""]
+    lines += ["## Parameters", ""]
+    if run.method != "ellipsoid":
         lines += ["| parameter | value | uncertainty (1 sigma) |", "|---|---:|---:|"]
         lines += [f"| {n} | {v:.6g} | {u:.2g} |"
                   for n, v, u in zip(PARAMETERS, res.x, res.uncertainties)]
         lines += ["", "Paper's Table 1 form: P = K^-1 and the offset P c (nT):", "",
                   "```", np.array2string(res.P, precision=5),
                   np.array2string(res.offset_sensor, precision=2), "```", ""]
-        for warning in res.warnings:
-            lines.append(f"> warning: {warning}")
     else:
-        res = run.result
         values = np.linalg.eigvalsh(res.W)
         lines += ["Ellipsoid: |W (b - centre)| = field. W is the symmetric positive-definite "
                   "root of the fitted quadric (its sign fixed: eigenvalues "
@@ -513,18 +762,54 @@ def write_report(run, out_dir):
                   f"Octant coverage: {res.coverage.filled} of 8 octants with at least "
                   f"{res.coverage.min_per_octant} samples ({res.coverage.counts.tolist()}).",
                   ""]
-        lines += [f"> warning: {warning}" for warning in res.warnings]
     if run.heading is not None:
         lines += _heading_lines(run.heading, run.t)
-    bad = run.parsed.report.bad if hasattr(run.parsed.report, "bad") else {}
-    lines += ["", f"Log: {_jsonable(vars(run.parsed.report)).get('lines')} lines; bad lines by "
-              f"reason: {bad}", ""]
-    lines += [f"![{key}]({path.name})" for key, path in files.items()]
-    markdown = "\n".join(lines) + "\n"
-    (out / "report.md").write_text(markdown)
-    (out / "report.html").write_text(
-        "<!doctype html><meta charset=utf-8><title>Calibration</title>"
-        "<style>table{border-collapse:collapse}td,th{border:1px solid #bbb;"
-        "padding:2px 6px}</style>" + _html(lines))
+    report = run.parsed.report
+    bad = ", ".join(f"{k} {v}" for k, v in report.bad.items() if v) or "none"
+    lines += ["## Log", "", f"{report.lines} lines; bad lines by reason: {bad}.", ""]
+    lines += ["## Plots", ""]
+    for key, path in files.items():
+        lines += [f"![{key}]({path.name})", ""]
+    return lines
+
+
+def write_report(run, out_dir):
+    """Markdown, HTML, PNGs and a JSON of the parameters into folder ``out_dir``; returns
+    the paths (keys markdown, html, json and one per plot).
+
+    Every file is written beside its final name first and moved into place when all are
+    written; files of an earlier report (:func:`report_files`: only those names) that this
+    one does not write again are then removed, so a rerun leaves no stale plot behind and
+    a failed write leaves the earlier report as it was. When the OS refuses (no such
+    folder and none can be made, a file in the way, no permission, a full disk) a
+    :class:`ReportError` says where and why in one line. Nothing is printed."""
+    out = check_output_dir(out_dir)
+    staged = {}
+    try:
+        with _warnings.catch_warnings(), np.errstate(all="ignore"):
+            _warnings.simplefilter("ignore")
+            summary = run.summary()
+            files = _plots(run, out, staged)
+            _stage(staged, out / "parameters.json").write_text(
+                json.dumps(_jsonable(summary), indent=2, allow_nan=False) + "\n")
+            markdown_text = "\n".join(_report_lines(run, summary, files)) + "\n"
+            _stage(staged, out / "report.md").write_text(markdown_text, encoding="utf-8")
+            _stage(staged, out / "report.html").write_text(
+                _html(markdown_text, f"Calibration of {run.log_name}"), encoding="utf-8")
+        for final, temp in staged.items():
+            os.replace(temp, final)
+        for name in report_files():
+            stale = out / name
+            if stale not in staged and (stale.is_file() or stale.is_symlink()):
+                stale.unlink()
+    except OSError as error:
+        where = Path(error.filename).parent if error.filename else out
+        raise ReportError(f"{where}: cannot write the report: {_reason(error)}") from None
+    finally:
+        for temp in staged.values():
+            try:
+                temp.unlink(missing_ok=True)
+            except OSError:
+                pass
     return {"markdown": out / "report.md", "html": out / "report.html",
             "json": out / "parameters.json", **files}

@@ -1,30 +1,42 @@
-"""`maglog calibrate` on a card image made by independent FAT tools (mkfs.fat, mcopy)."""
+"""`maglog calibrate` on card images made by independent FAT tools (mkfs.fat, mcopy) and
+on plain logs; the report it writes (valid HTML, strict JSON, no stale files); bad input
+ending in one-line messages (issue 10, "Messages, not tracebacks")."""
 
+import errno
 import json
-import shutil
+import os
 import struct
 import subprocess
-from pathlib import Path
 
+import html5lib
 import numpy as np
 import pytest
 
+from maglog.calib import pipeline
+from maglog.calib.pipeline import (REFERENCE_RANGE_NT, SEED_RANGE, CalibrationError,
+                                   ReportError, calibrate_card, check_output_dir,
+                                   check_reference, check_seed, report_files, write_report)
 from maglog.sim.cli import main
 from maglog.sim.scenario import make_flight
 
-TOOLS = {name: shutil.which(name) or next(
-    (str(p) for p in (Path("/usr/sbin") / name, Path("/sbin") / name) if p.exists()), None)
-    for name in ("mkfs.fat", "mcopy")}
-pytestmark = pytest.mark.skipif(
-    not all(TOOLS.values()),
-    reason="card images are built with mkfs.fat (dosfstools) and mcopy (mtools): "
-           "run `make test`, which installs them")
-
+XHTML = "{http://www.w3.org/1999/xhtml}"
 FS_LBA = 2048
 FS_SECTORS = 131072                   # 64 MiB: a legal FAT32 with one-sector clusters
 
 
-def card_image(path, files):
+def valid_html(path):
+    """The page parsed by html5lib in strict mode (any parse error raises): its tree."""
+    return html5lib.HTMLParser(strict=True).parse(path.read_bytes())
+
+
+def strict_json(path):
+    """parameters.json read by a parser that refuses NaN and infinities (not JSON)."""
+    def refuse(name):
+        raise ValueError(f"{path.name} holds {name}, which is not JSON")
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def card_image(tools, path, files):
     """A raw card image: an MBR with one FAT32 (LBA) partition at 1 MiB, formatted and
     filled by mkfs.fat and mcopy."""
     with open(path, "wb") as f:
@@ -34,21 +46,21 @@ def card_image(path, files):
         f.write(entry)
         f.seek(0x1FE)
         f.write(b"\x55\xAA")
-    subprocess.run([TOOLS["mkfs.fat"], "-F", "32", "-s", "1", "--offset", str(FS_LBA),
+    subprocess.run([tools["mkfs.fat"], "-F", "32", "-s", "1", "--offset", str(FS_LBA),
                     "-h", str(FS_LBA), str(path), str(FS_SECTORS // 2)],
                    check=True, capture_output=True)
     for name, data in files.items():
         source = path.parent / name
         source.write_bytes(data)
-        subprocess.run([TOOLS["mcopy"], "-i", f"{path}@@{FS_LBA * 512}", str(source),
+        subprocess.run([tools["mcopy"], "-i", f"{path}@@{FS_LBA * 512}", str(source),
                         f"::{name}"], check=True, capture_output=True)
 
 
 @pytest.mark.parametrize("ref", ["cesium", "igrf"])
-def test_calibrate_a_card_image(tmp_path, ref, capsys):
+def test_calibrate_a_card_image(fat_tools, tmp_path, ref, capsys):
     flight = make_flight(coverage="uav", seconds=60, seed=5)
     image = tmp_path / "card.img"
-    card_image(image, {"LOG00001.TXT": flight.log(), "NOTES.TXT": b"not a log\r\n"})
+    card_image(fat_tools, image, {"LOG00001.TXT": flight.log(), "NOTES.TXT": b"not a log\r\n"})
     out = tmp_path / "report"
     assert main(["calibrate", str(image), "--ref", ref, "--out", str(out)]) == 0
     printed = capsys.readouterr().out
@@ -65,13 +77,13 @@ def test_calibrate_a_card_image(tmp_path, ref, capsys):
         assert (out / name).stat().st_size > 0
 
 
-def test_errors_are_clear(tmp_path, capsys):
+def test_errors_are_clear(fat_tools, tmp_path, capsys):
     garbage = tmp_path / "garbage.img"
     garbage.write_bytes(bytes(range(256)) * 64)
     assert main(["calibrate", str(garbage), "--out", str(tmp_path / "r")]) == 1
     assert "maglog: error:" in capsys.readouterr().err
     empty = tmp_path / "empty.img"
-    card_image(empty, {"README.TXT": b"hello\r\n"})
+    card_image(fat_tools, empty, {"README.TXT": b"hello\r\n"})
     assert main(["calibrate", str(empty), "--out", str(tmp_path / "r")]) == 1
     assert "no LOG*.TXT" in capsys.readouterr().err
     assert main(["calibrate", str(tmp_path / "missing.img")]) == 1
@@ -107,9 +119,11 @@ def test_heading_alignment_and_error_against_the_attitude(survey, tmp_path, caps
     assert (out / "heading_error.png").stat().st_size > 0
     report = (out / "report.md").read_text()
     assert "## Heading" in report and "heading - course" in report
-    page = (out / "report.html").read_text()
-    assert "<h2>Heading</h2>" in page and page.count("<table>") == 2
-    assert '<img src="heading_error.png">' in page and "<pre>" in page
+    page = valid_html(out / "report.html")
+    assert {"Parameters", "Heading", "Log", "Plots"} <= {h.text for h in page.iter(f"{XHTML}h2")}
+    assert len(list(page.iter(f"{XHTML}table"))) == 2
+    assert "heading_error.png" in [img.get("src") for img in page.iter(f"{XHTML}img")]
+    assert len(list(page.iter(f"{XHTML}pre"))) == 1
     # Without the attitude the same log is aligned from level-flight headings alone.
     assert main(["calibrate", str(survey / "LOG00002.TXT"), "--out", str(tmp_path / "r2")]) == 0
     level = json.loads((tmp_path / "r2" / "parameters.json").read_text())["heading"]
@@ -163,3 +177,254 @@ def test_ellipsoid_method_and_its_constrained_fallback(tmp_path, capsys):
     summary = json.loads((tmp_path / "h" / "parameters.json").read_text())
     assert summary["fit"] == "constrained"
     assert any("constrained" in w for w in summary["warnings"])
+
+
+# --- issue 10: messages, not tracebacks ---------------------------------------------------
+
+@pytest.fixture(scope="module")
+def flight():
+    return make_flight(coverage="uav", seconds=30, seed=2)
+
+
+def edit_log(log, *, pmag=None, cesium=None, gga=None, zda=None):
+    """The log with its lines rebuilt: ``pmag(k, fields)``, ``cesium(k, text)``, ``gga(k,
+    fields)``, ``zda(k, fields)`` return the new fields (text; checksums recomputed) or
+    None to drop the line."""
+    from maglog.sim.sentences import nmea_sentence
+    out, counts = [], {}
+    for line in log.splitlines(keepends=True):
+        body = line.rstrip(b"\r\n").decode()
+        kind = ("pmag" if body.startswith("$PMAG1,") else "cesium" if body[1:2] in " 1"
+                else body[3:6].lower())
+        edit = {"pmag": pmag, "cesium": cesium, "gga": gga, "zda": zda}.get(kind)
+        if edit is None:
+            out.append(line)
+            continue
+        k = counts[kind] = counts.get(kind, -1) + 1
+        if kind == "cesium":
+            new = edit(k, body[1:])
+            if new is not None:
+                out.append(f"${new}\r\n".encode())
+            continue
+        fields = edit(k, body[1:body.index("*")].split(","))
+        if fields is not None:
+            out.append(nmea_sentence(",".join(fields)))
+    return b"".join(out)
+
+
+def set_axes(values):
+    """A pmag edit putting ``values(k, x, y, z)`` (floats or text) into the three axes."""
+    def edit(k, fields):
+        new = values(k, *(float(f) for f in fields[2:5]))
+        return fields[:2] + [v if isinstance(v, str) else f"{v:+.1f}" for v in new]
+    return edit
+
+
+def calibrate_log(tmp_path, log, *args, name="LOG00001.TXT"):
+    """``maglog calibrate`` on a plain log, in process: (exit status, stdout, stderr)."""
+    import contextlib
+    import io
+    path = tmp_path / name
+    path.write_bytes(log)
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = main(["calibrate", str(path), "--out", str(tmp_path / "report"), *args])
+    return status, out.getvalue(), err.getvalue()
+
+
+@pytest.mark.parametrize("case,edit,method,message", [
+    ("all axes zero", dict(pmag=set_axes(lambda k, x, y, z: (0.0, 0.0, 0.0))), "pso",
+     "the magnetometer reads 0 nT"),
+    ("sub-nT axes", dict(pmag=set_axes(lambda k, x, y, z: ("0.0001", "-0.0002", "0.0003"))),
+     "pso", "more than 10 times off: not in nT"),
+    ("samples identical", dict(pmag=set_axes(lambda k, x, y, z: (20000.0, 3000.0, 40000.0))),
+     "lm", "Axis x does not change"),
+    ("two distinct vectors", dict(pmag=set_axes(
+        lambda k, x, y, z: (20000.0, 3000.0, 40000.0) if k % 2 else (-9000.0, 25000.0, 35000.0))),
+     "pso", "Only 2 distinct vectors"),
+    ("stuck axis", dict(pmag=set_axes(lambda k, x, y, z: (x, y, 99999.9))), "pso",
+     "Axis z does not change (peak-to-peak 0 nT, about 99999.9 nT)"),
+    ("stuck axis, ellipsoid", dict(pmag=set_axes(lambda k, x, y, z: (x, y, 99999.9))),
+     "ellipsoid", "Axis z does not change"),
+    ("axis of 309 digits", dict(pmag=set_axes(lambda k, x, y, z: ("9" * 309, y, z))), "pso",
+     "only 0 magnetometer samples"),
+    ("cesium all 0 nT", dict(cesium=lambda k, text: " 00000.000,1200"), "pso",
+     "every cesium reading is outside 1,000..1,000,000 nT (0 nT: no lock?)"),
+    ("igrf in the year 3000", dict(zda=lambda k, f: f[:4] + ["3000"] + f[5:]), "igrf",
+     "the log's date 3000-06-01 (from its ZDA) is outside IGRF-14's 1900-2030"),
+    ("igrf at 1e8 m", dict(gga=lambda k, f: f[:9] + ["100000000.0"] + f[10:]), "igrf",
+     "no GPS fix with a position and a plausible altitude"),
+])
+def test_bad_data_ends_in_one_line_saying_what_and_where(flight, tmp_path, case, edit, method,
+                                                         message):
+    args = ["--ref", "igrf"] if method == "igrf" else ["--method", method]
+    status, out, err = calibrate_log(tmp_path, edit_log(flight.log(), **edit), *args)
+    assert status == 1, (case, out, err)
+    assert err.splitlines()[-1].startswith("maglog: error: ")
+    assert message in err and "LOG00001.TXT" in err or message in err and method == "igrf"
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("ref,message", [
+    ("5", "a reference field must be 1,000..1,000,000 nT"),
+    ("1e30", "a reference field must be 1,000..1,000,000 nT"),
+    ("1e308", "a reference field must be 1,000..1,000,000 nT"),
+])
+def test_reference_values_out_of_range_are_refused(flight, tmp_path, ref, message):
+    status, _, err = calibrate_log(tmp_path, flight.log(), "--ref", ref)
+    assert status == 1 and message in err
+
+
+def test_check_reference_and_seed():
+    low, high = REFERENCE_RANGE_NT
+    assert check_reference(low) == low and check_reference(high) == high
+    assert check_reference("48000") == 48_000.0 and check_reference(np.float32(5e4)) == 5e4
+    assert check_reference("cesium") == "cesium" and check_reference("igrf") == "igrf"
+    for bad in (5, 999.9, 1_000_000.5, 1e30, 1e308, float("nan"), float("inf"), -50_000,
+                "5", "nan", "cs", True, None):
+        with pytest.raises(CalibrationError, match="reference"):
+            check_reference(bad)
+    # numpy takes any non-negative integer as a seed (ValueError for negative ones).
+    assert check_seed(0) == 0 and check_seed(SEED_RANGE[1]) == 2**128 - 1
+    assert check_seed("7") == 7 and check_seed(np.int64(3)) == 3
+    np.random.default_rng(SEED_RANGE[1])
+    with pytest.raises(ValueError):
+        np.random.default_rng(-1)
+    for bad in (-1, 2**128, 1.5, "x", "1e3", "", True, None):
+        with pytest.raises(CalibrationError, match=r"a seed must be an integer 0\.\.2\*\*128-1"):
+            check_seed(bad)
+    with pytest.raises(CalibrationError, match="a seed must be"):
+        calibrate_card(b"", seed=-1)
+
+
+def test_doubtful_results_say_why_in_the_report(flight, tmp_path):
+    # A tenth of the cesium readings are 0 nT (no lock), one sample is a spike: calibrated
+    # from the rest, and both said in the report and its JSON. (A spike of 30,000 nT
+    # drags the least-squares fit onto the search bound: that is said too.)
+    log = edit_log(flight.log(),
+                   cesium=lambda k, text: " 00000.000,0000" if k % 10 == 3 else text,
+                   pmag=set_axes(lambda k, x, y, z: (x + 500.0, y, z) if k == 200 else (x, y, z)))
+    status, out, err = calibrate_log(tmp_path, log, "--method", "lm")
+    assert status == 0, err
+    summary = strict_json(tmp_path / "report" / "parameters.json")
+    notes = " ".join(summary["warnings"])
+    assert "30 of 300 cesium readings outside 1,000..1,000,000 nT (0 nT: no lock?)" in notes
+    assert summary["success"] and "1 of 597 samples lie more than" in notes
+    page = valid_html(tmp_path / "report" / "report.html")
+    items = [li.text for ul in page.iter(f"{XHTML}ul") for li in ul]
+    assert any("cesium readings outside" in (text or "") for text in items)
+
+
+def test_fit_status_is_in_the_report(flight, tmp_path, monkeypatch):
+    from maglog.calib import scalar
+    monkeypatch.setattr(scalar, "MAX_NFEV_PER_PARAMETER", 0.2)
+    status, _, err = calibrate_log(tmp_path, flight.log(), "--method", "lm")
+    assert status == 0, err
+    summary = strict_json(tmp_path / "report" / "parameters.json")
+    assert summary["success"] is False and summary["status"] == 0
+    assert summary["message"].startswith("not converged: stopped at the evaluation limit")
+    assert any("did not converge" in w for w in summary["warnings"])
+    assert "- fit: not converged" in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_json_is_strict_and_html_valid_without_gps(flight, tmp_path):
+    # No GGA: no time, no rate, NaN in the log report (a bare NaN in 67 of 731 reports).
+    log = edit_log(flight.log(), gga=lambda k, f: None)
+    status, _, err = calibrate_log(tmp_path, log, "--method", "lm")
+    assert status == 0, err
+    summary = strict_json(tmp_path / "report" / "parameters.json")
+    assert summary["log_report"]["line_rate_hz"] is None
+    page = valid_html(tmp_path / "report" / "report.html")
+    assert page.find(f"{XHTML}head/{XHTML}title").text == "Calibration of LOG00001.TXT"
+    assert page.find(f"{XHTML}head/{XHTML}meta").get("charset") == "utf-8"
+    table = page.find(f".//{XHTML}table")
+    assert [th.text for th in table.iter(f"{XHTML}th")] == [
+        "parameter", "value", "uncertainty (1 sigma)"]
+    assert len(list(table.iter(f"{XHTML}tr"))) == 10
+    images = [img.get("src") for img in page.iter(f"{XHTML}img")]
+    assert images == ["figure7.png", "coverage.png", "residuals.png", "allan.png"]
+    assert all((tmp_path / "report" / name).stat().st_size > 0 for name in images)
+
+
+def test_markup_in_a_log_name_is_text_in_the_page(flight, tmp_path):
+    status, _, err = calibrate_log(tmp_path, flight.log(), "--method", "lm",
+                                   name="<b>x&amp;<b>.txt")
+    assert status == 0, err
+    page = valid_html(tmp_path / "report" / "report.html")
+    # Markup is text; an entity in the name shows as its character (Markdown keeps it).
+    assert page.find(f".//{XHTML}h1").text == "Calibration of <b>x&<b>.txt"
+    assert page.find(f".//{XHTML}b") is None
+
+
+def test_calib_prints_nothing(flight, tmp_path, capfd):
+    import warnings
+    log = tmp_path / "LOG00001.TXT"
+    log.write_bytes(edit_log(flight.log(), gga=lambda k, f: None if k % 3 else f))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        run = calibrate_card(log, method="pso")
+        write_report(run, tmp_path / "r")
+    assert capfd.readouterr() == ("", "")
+
+
+@pytest.fixture(scope="module")
+def lm_run(flight, tmp_path_factory):
+    log = tmp_path_factory.mktemp("log") / "LOG00001.TXT"
+    log.write_bytes(flight.log())
+    return calibrate_card(log, method="lm")
+
+
+def test_a_rerun_removes_only_its_own_stale_files(lm_run, tmp_path):
+    out = tmp_path / "report"
+    out.mkdir()
+    for name in ("heading_error.png", "allan.png", "notes.txt", "photo.png"):
+        (out / name).write_bytes(b"earlier")
+    paths = write_report(lm_run, out)
+    assert not (out / "heading_error.png").exists()            # not made this time: removed
+    assert (out / "allan.png").read_bytes() != b"earlier"      # made again: replaced
+    assert (out / "notes.txt").read_bytes() == b"earlier"      # not its own: kept
+    assert (out / "photo.png").read_bytes() == b"earlier"
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [p.name for p in paths.values()] + ["notes.txt", "photo.png"])
+    assert set(p.name for p in paths.values()) <= set(report_files())
+
+
+def test_output_folder_errors_are_one_line(lm_run, tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("a file, not a folder")
+    for where, message in [(blocker, "exists and is not a folder"),
+                           (blocker / "sub", "cannot create the report folder"),
+                           ("/proc/maglog-report", "cannot create the report folder"),
+                           ("/proc", "cannot write into the report folder")]:   # even as root
+        for call in (check_output_dir, lambda path: write_report(lm_run, path)):
+            with pytest.raises(ReportError, match=message) as error:
+                call(where)
+            assert "\n" not in str(error.value) and str(where) in str(error.value)
+    assert blocker.read_text() == "a file, not a folder"
+    if os.geteuid() != 0:                   # root writes anywhere
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o500)
+        with pytest.raises(ReportError, match="cannot write into the report folder"):
+            check_output_dir(locked)
+    # A full disk: found by the check before the fit, and by the write itself.
+    import shutil
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(pipeline.shutil, "disk_usage",
+                        lambda path: usage._replace(free=100 * 1024))
+    with pytest.raises(ReportError, match="only 100 KiB free"):
+        check_output_dir(tmp_path / "full")
+    monkeypatch.undo()
+
+
+def test_a_failed_write_keeps_the_earlier_report(lm_run, tmp_path, monkeypatch):
+    out = tmp_path / "report"
+    first = write_report(lm_run, out)
+    before = {path.name: path.read_bytes() for path in first.values()}
+
+    def disk_full(src, dst):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+    monkeypatch.setattr(pipeline.os, "replace", disk_full)
+    with pytest.raises(ReportError, match="cannot write the report: No space left on device"):
+        write_report(lm_run, out)
+    monkeypatch.undo()
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before  # no temp left
