@@ -117,7 +117,7 @@ def test_full_ring_drops_whole_frames_and_keeps_unreleased_bytes():
     capacity = 2048
     rng = random.Random(2)
     first = frames_of(rng, 60)
-    later = frames_of(rng, 10)
+    later = frames_of(rng, 30)          # more than the two released sectors hold
 
     async def script(ctx, ring, ops):
         for frame in first:
@@ -145,13 +145,21 @@ def test_full_ring_drops_whole_frames_and_keeps_unreleased_bytes():
     assert level_full == used
     assert before[:used] == b"".join(kept_first)
     assert dropped == len(first) - len(kept_first) > 0
-    # After the release, the unreleased bytes are untouched and the new frames follow them.
+    # After the release, the unreleased bytes are untouched and the new frames follow them,
+    # each kept whole if it fits in what is free then, else dropped whole (the same rule).
     tail = b"".join(kept_first)[2 * SECTOR:]
+    kept_later, free = [], capacity - len(tail)
+    for frame in later:
+        if len(frame) <= free:
+            kept_later.append(frame)
+            free -= len(frame)
+    assert 0 < len(kept_later) < len(later)     # the release made room, but not for all
     assert after[:len(tail)] == tail
-    assert kept == len(kept_first) + (kept - len(kept_first))
-    assert high_water >= level_full
-    assert dropped_total >= dropped
-    assert level == len(tail) + sum(len(f) for f in later[:kept - len(kept_first)])
+    assert after[len(tail):level] == b"".join(kept_later)
+    assert level == len(tail) + sum(map(len, kept_later))
+    assert kept == len(kept_first) + len(kept_later)
+    assert dropped_total == dropped + len(later) - len(kept_later)
+    assert high_water == max(level_full, level)
 
 
 def test_capacity_is_checked():
