@@ -149,6 +149,11 @@ def test_faults_are_retried_and_nothing_is_silently_lost(faults):
     assert card.errors == []
 
 
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+    "sw/sdcard.py: after a busy timeout the driver sends CMD12 and retries at once (ACMD23) "
+    "while the card still programs; the card rejects it as illegal in prg and the write ends "
+    "in SdTimeout('CMD23 got no response') with no count of the blocks written. write_from's "
+    "documented status check after CMD12 (wait for tran) is missing."))
 def test_busy_past_the_timeout_is_reported_with_the_blocks_written():
     card = new_card(seed=6, faults=Faults(busy_past_timeout=1,
                                           busy_past_timeout_clocks=3000))
@@ -161,12 +166,19 @@ def test_busy_past_the_timeout_is_reported_with_the_blocks_written():
         return await driver.write_blocks(700, data)
 
     out = run(firmware, card)
+    # No command reached the card while it was busy programming.
+    assert card.errors == []
     error = out.get("error")
-    assert isinstance(error, (SdWriteError, SdTimeout)), error
-    if isinstance(error, SdWriteError):
-        assert error.accepted <= 3
-        for k in range(error.accepted):
-            assert card.image.read_block(700 + k) == data[k * 512:(k + 1) * 512]
+    if error is None:
+        # Retried once the card was back in tran: every block written, one retry counted.
+        assert out["value"] == 3 and out["driver"].retries >= 1
+        assert b"".join(card.image.read_block(700 + k) for k in range(3)) == data
+    else:
+        # Given up: the failure counts the blocks safely on the card, block 0 (block 1's
+        # busy outlasted the timeout), and that block is there.
+        assert isinstance(error, SdWriteError), error
+        assert error.accepted == 1
+        assert card.image.read_block(700) == data[:512]
 
 
 def test_card_that_never_finishes_power_up(monkeypatch):
