@@ -13,10 +13,16 @@ def make_frames(rng, channel, count):
             for _ in range(count)]
 
 
-def run_arbiter(inputs, *, gaps=None, ready=None, tail=400):
+def run_arbiter(inputs, *, gaps=None, ready=None, tail=400, timing=None):
+    """The arbiter's output frames as (bytes, {"channel": k}); ``timing`` (a dict), when
+    given, gets "offered": per channel, the cycle each frame was first offered, and "ended":
+    per output frame, the cycle its last byte left."""
     n = len(inputs)
     dut = FrameArbiter(n)
     out = []
+    now = [0]                               # cycles since the start, counted by the sink
+    if timing is not None:
+        timing.update(offered=[[] for _ in range(n)], ended=[])
 
     def source(k):
         async def feed(ctx):
@@ -27,6 +33,8 @@ def run_arbiter(inputs, *, gaps=None, ready=None, tail=400):
                     for _ in range(gaps(k)):
                         ctx.set(stream.valid, 0)
                         await ctx.tick()
+                if timing is not None:
+                    timing["offered"][k].append(now[0])
                 for index, byte in enumerate(frame):
                     ctx.set(stream.payload, {"data": byte, "last": index == len(frame) - 1})
                     ctx.set(stream.valid, 1)
@@ -35,11 +43,25 @@ def run_arbiter(inputs, *, gaps=None, ready=None, tail=400):
             await ctx.tick().repeat(tail)
         return feed
 
+    class Timed(list):
+        def append(self, frame):
+            super().append(frame)
+            if timing is not None:
+                timing["ended"].append(now[0])
+
+    def clocked_ready(cycle):
+        now[0] = cycle
+        return True if ready is None else ready(cycle)
+
     async def sink(ctx):
-        await collect_frames(ctx, dut.o, out, fields=("data", "channel"), ready=ready)
+        await collect_frames(ctx, dut.o, frames, fields=("data", "channel"),
+                             ready=clocked_ready)
+
+    frames = Timed()
 
     run_simulation(dut, [source(k) for k in range(n)], background=[sink], name="arbiter",
                    deadline=1.0)
+    out.extend(frames)
     return out
 
 
@@ -70,12 +92,16 @@ def test_busy_channel_cannot_starve_a_quiet_one():
     rng = random.Random(9)
     busy = make_frames(rng, 0, 60)
     quiet = make_frames(rng, 1, 3)
-    out = run_arbiter([busy, quiet], gaps=lambda k: 0 if k == 0 else 50)
+    timing = {}
+    out = run_arbiter([busy, quiet], gaps=lambda k: 0 if k == 0 else 50, timing=timing)
     order = [tags["channel"] for _, tags in out]
-    for position in [i for i, c in enumerate(order) if c == 1]:
-        # A quiet channel's frame waits for at most the one frame in flight.
-        assert position > 0
     assert order.count(1) == 3
+    positions = [i for i, c in enumerate(order) if c == 1]
+    for offered, position in zip(timing["offered"][1], positions):
+        # A quiet channel's frame waits for at most the one frame in flight when it came:
+        # of the frames before it, at most one ended after it was offered.
+        waited_for = [i for i in range(position) if timing["ended"][i] > offered]
+        assert len(waited_for) <= 1, (offered, position, waited_for)
     # After the quiet channel's frame became ready it was served next, not after all 60.
     assert order.index(1) < 10
 
