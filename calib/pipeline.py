@@ -60,6 +60,8 @@ ALTITUDE_RANGE_M = (-1_000.0, 100_000.0)
 #: The magnetometer's median |B| may differ from the reference's by at most this factor
 #: (a strong hard iron moves it, a unit mistake moves it by 1000).
 SCALE_MISMATCH = 10.0
+#: A residual RMS above this share of the field is reported as a poor fit.
+POOR_FIT_FRACTION = 0.01
 #: A sample whose residual is this many robust standard deviations (1.4826 MAD) from the
 #: median, and at least OUTLIER_FLOOR_NT, is reported as an outlier.
 OUTLIER_SIGMAS = 10.0
@@ -548,9 +550,15 @@ def _calibrate(path, ref, method, seed, attitude):
                          heading=_heading(parsed, t, use_time, vectors, attitude), notes=notes)
     before = float(np.sqrt(np.mean((np.linalg.norm(b, axis=1) - r) ** 2)))
     after = float(np.sqrt(np.mean(run.residual ** 2)))
+    field_nt = float(np.median(r))
     if not after < before:
         notes.append(f"the calibration did not reduce the total-field RMS ({before:.3g} nT "
                      f"before, {after:.3g} nT after): the model does not fit these data")
+    elif after > POOR_FIT_FRACTION * field_nt:
+        notes.append(f"the calibrated field is still {after:.3g} nT RMS from the reference "
+                     f"({100 * after / field_nt:.2g} % of it; a calibration reaches the "
+                     "sensor's noise, a few nT): the model does not fit these data (strong "
+                     "interference, bad samples, or not this field)")
     residual = run.residual - np.median(run.residual)
     spread = max(OUTLIER_SIGMAS * 1.4826 * float(np.median(np.abs(residual))),
                  OUTLIER_FLOOR_NT)
@@ -735,8 +743,8 @@ def _report_lines(run, summary, files):
              f"before, {summary['rms_after_nT']:.2f} nT after"]
     res = run.result
     if run.method != "ellipsoid":
-        lines.append(f"- fit: {res.message} ({res.solver} polish, {res.nit} PSO iterations "
-                     "and evaluations)")
+        lines.append(f"- fit: {res.message} (polish: least_squares {res.solver}; {res.nit} "
+                     "swarm iterations and function evaluations in all)")
     else:
         lines.append(f"- fit: {res.method} ellipsoid, {res.message}")
     lines.append("")

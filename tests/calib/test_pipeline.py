@@ -428,3 +428,17 @@ def test_a_failed_write_keeps_the_earlier_report(lm_run, tmp_path, monkeypatch):
         write_report(lm_run, out)
     monkeypatch.undo()
     assert {path.name: path.read_bytes() for path in out.iterdir()} == before  # no temp left
+
+
+def test_a_fit_far_from_the_reference_is_said(tmp_path):
+    # x buried in noise of ±50,000 nT: the ellipsoid still "fitted" (10,000 nT RMS) and the
+    # report said nothing.
+    rng = np.random.default_rng(1)
+    full = make_flight(coverage="full", seconds=20, seed=4)
+    log = edit_log(full.log(), pmag=set_axes(lambda k, x, y, z: (x + rng.uniform(-5e4, 5e4),
+                                                                 y, z)))
+    status, _, err = calibrate_log(tmp_path, log, "--method", "ellipsoid", "--ref", "50000")
+    assert status == 0, err
+    summary = strict_json(tmp_path / "report" / "parameters.json")
+    assert summary["rms_after_nT"] > 1000
+    assert any("the model does not fit these data" in w for w in summary["warnings"])

@@ -1,0 +1,691 @@
+"""A seeded mutation run of ``maglog calibrate``: card images, logs and option values
+changed as a new user would meet them, each run through ``maglog.sim.cli.main`` in
+process, in worker processes (one per core) with an alarm per input, and classified.
+
+Outcomes (:data:`OUTCOMES`):
+
+``ok``
+    exit 0, ``parameters.json`` strict JSON, ``report.html`` valid HTML, the parameters
+    finite and the residual plausible (below the raw one and below
+    :data:`PLAUSIBLE_RMS_NT`, the fit converged inside its box);
+``warned``
+    exit 0 with a result that is not all of that, and the report's warnings say why;
+``error``
+    exit 1 and a last line ``maglog: error: ...`` (no traceback);
+``usage``
+    the argument parser's exit 2 with its one-line message;
+``traceback``
+    an exception escaped ``main``;
+``hang``
+    no answer within the time limit;
+``nonsense``
+    exit 0 with no usable result and no warning saying why, or output that is not strict
+    JSON / valid HTML, or an exit status other than 0, 1, 2.
+
+Used by ``tests/calib/test_mutation.py`` (a short run by default, the long one under
+``-m slow``) and ``bench/calib/mutation.py`` (the long run, its counts as JSON).
+"""
+
+import contextlib
+import io
+import json
+import math
+import multiprocessing
+import os
+import shutil
+import signal
+import struct
+import subprocess
+import tempfile
+import time
+import traceback
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+#: Input classes, in the order a run cycles through them.
+CLASSES = ("image", "log:field", "log:bytes", "log:lines", "log:values", "option:ref",
+           "option:seed", "option:method", "option:out", "option:attitude", "option:card")
+OUTCOMES = ("ok", "warned", "error", "usage", "traceback", "hang", "nonsense")
+#: The failures the run exists to find.
+FAILURES = ("traceback", "hang", "nonsense")
+#: A calibrated total field further than this (RMS) from the reference is no calibration.
+PLAUSIBLE_RMS_NT = 1000.0
+#: Seconds an input may take (a PSO fit and a report take a few on a loaded machine).
+TIME_LIMIT = 120
+
+FS_LBA = 2048
+FS_SECTORS = 131072                   # 64 MiB: a legal FAT32 with one-sector clusters
+SECTOR = 512
+
+#: Field values a new user's files and fingers produce.
+WEIRD_FIELDS = ("", "0", "-0", "00000", "9" * 309, "1e308", "-1e308", "1e-308", "nan", "inf",
+                "-inf", str(2**63), "9999999999999999999", "+99999.9", "-99999.9", "100000.0",
+                "0.0001", "abc", " ", "1.2.3", "+", "-", ".", "3000", "9999", "235960.99",
+                "240000", "0000", "1" * 5000, "\x00", "\u00e9", "$", "*", "-1", "2", "61",
+                "0001", "99", "13")
+REFS = ("5", "0", "-1", "1e30", "1e308", "nan", "inf", "-inf", "999", "1000", "1000000",
+        "1000001", "50000", "48000.5", "abc", "", "CESIUM", "Igrf", "0x10", "1e-300", "1_000",
+        " 50000", "5e4", "cesium", "igrf")
+SEEDS = ("-1", "0", "1", str(2**128 - 1), str(2**128), "1.5", "x", "1e3", str(10**50), "",
+         "0x10", "-0", "+3", "9" * 5000, "007")
+METHODS = ("pso", "lm", "ellipsoid", "PSO", "ga", "", "ellipsoid ", "-m")
+
+
+@dataclass
+class Case:
+    """One input: files to create in a fresh folder, the image's patches, the argv
+    (``{work}`` is that folder, ``{base}`` the base material's)."""
+    index: int
+    kind: str
+    detail: str
+    argv: list
+    files: dict = field(default_factory=dict)
+    image: list = None            # None: no image; else [(offset, bytes)] patches
+    image_size: int = None        # truncate the image to this many bytes
+    out: str = "{work}/report"
+
+
+# --- base material ------------------------------------------------------------------------
+
+def fat_tools():
+    """mkfs.fat and mcopy, name -> path, or None when either is missing."""
+    search = os.pathsep.join([os.environ.get("PATH", os.defpath), "/usr/sbin", "/sbin"])
+    found = {name: shutil.which(name, path=search) for name in ("mkfs.fat", "mcopy")}
+    return found if all(found.values()) else None
+
+
+def make_base(folder, tools):
+    """Logs, an attitude file and (with ``tools``) a card image the mutants start from;
+    returns facts about them (image regions) for the generator."""
+    from maglog.sim.scenario import make_flight
+    folder = Path(folder)
+    uav = make_flight(coverage="uav", seconds=20, seed=3)
+    full = make_flight(coverage="full", seconds=20, seed=4)
+    (folder / "uav.log").write_bytes(uav.log())
+    (folder / "full.log").write_bytes(full.log())
+    (folder / "attitude.csv").write_bytes(uav.attitude_csv())
+    facts = {"image": None}
+    if tools:
+        image = folder / "card.img"
+        _card_image(tools, image, {"LOG00001.TXT": uav.log(), "NOTES.TXT": b"notes\r\n"})
+        facts["image"] = _image_facts(image)
+    return facts
+
+
+def _card_image(tools, path, files):
+    with open(path, "wb") as f:
+        f.truncate((FS_LBA + FS_SECTORS) * SECTOR)
+        entry = struct.pack("<B3sB3sII", 0x00, b"\0\0\0", 0x0C, b"\0\0\0", FS_LBA, FS_SECTORS)
+        f.seek(0x1BE)
+        f.write(entry)
+        f.seek(0x1FE)
+        f.write(b"\x55\xAA")
+    subprocess.run([tools["mkfs.fat"], "-F", "32", "-s", "1", "--offset", str(FS_LBA),
+                    "-h", str(FS_LBA), str(path), str(FS_SECTORS // 2)],
+                   check=True, capture_output=True)
+    for name, data in files.items():
+        source = path.parent / name
+        source.write_bytes(data)
+        subprocess.run([tools["mcopy"], "-i", f"{path}@@{FS_LBA * SECTOR}", str(source),
+                        f"::{name}"], check=True, capture_output=True)
+
+
+def _image_facts(path):
+    """Byte ranges of the image's structures, read from its boot sector."""
+    data = path.read_bytes()
+    boot = FS_LBA * SECTOR
+    per_sector, per_cluster, reserved, fats = struct.unpack_from("<HBHB", data, boot + 11)
+    fat_size, = struct.unpack_from("<I", data, boot + 36)
+    root_cluster, = struct.unpack_from("<I", data, boot + 44)
+    fat = boot + reserved * per_sector
+    clusters = fat + fats * fat_size * per_sector
+    cluster_bytes = per_cluster * per_sector
+    root = clusters + (root_cluster - 2) * cluster_bytes
+    return {"size": len(data), "boot": boot, "fat": fat, "fat_bytes": fat_size * per_sector,
+            "root": root, "cluster_bytes": cluster_bytes, "data": root + cluster_bytes}
+
+
+def _sparse_copy(source, target, size):
+    """Copy an image, its holes left holes (a 64 MiB image holds a few hundred KiB)."""
+    with open(source, "rb") as src, open(target, "wb") as dst:
+        dst.truncate(size)
+        end = os.fstat(src.fileno()).st_size
+        offset = 0
+        while offset < min(end, size):
+            try:
+                start = os.lseek(src.fileno(), offset, os.SEEK_DATA)
+                stop = os.lseek(src.fileno(), start, os.SEEK_HOLE)
+            except OSError:          # no more data (ENXIO), or no SEEK_DATA here
+                break
+            stop = min(stop, size)
+            if start >= stop:
+                break
+            src.seek(start)
+            dst.seek(start)
+            dst.write(src.read(stop - start))
+            offset = stop
+
+
+# --- mutations ------------------------------------------------------------------------------
+
+def _lines(log):
+    return log.splitlines(keepends=True)
+
+
+def _kind(line):
+    if line.startswith(b"$PMAG1,"):
+        return "pmag"
+    if line[1:2] in (b" ", b"1"):
+        return "cesium"
+    return line[3:6].decode("ascii", "replace").lower()
+
+
+def _nmea(body):
+    checksum = 0
+    for byte in body:
+        checksum ^= byte
+    return b"$" + body + b"*%02X\r\n" % checksum
+
+
+def _set_field(line, index, value, rng):
+    """``line`` with comma field ``index`` replaced; the checksum recomputed mostly."""
+    text = line.rstrip(b"\r\n")
+    star = text.rfind(b"*")
+    body = text[1:star] if star > 0 else text[1:]
+    fields = body.split(b",")
+    fields[index % len(fields)] = value
+    body = b",".join(fields)
+    if star > 0 and rng.random() < 0.8:
+        return _nmea(body)
+    return b"$" + body + (text[star:] if star > 0 else b"") + b"\r\n"
+
+
+def _rewrite(log, kind, edit):
+    """Every line of ``kind`` through ``edit(k, fields) -> fields or None`` (text fields;
+    NMEA and PMAG checksums recomputed)."""
+    out, k = [], 0
+    for line in _lines(log):
+        if _kind(line) != kind:
+            out.append(line)
+            continue
+        text = line.rstrip(b"\r\n").decode("ascii")
+        if kind == "cesium":
+            new = edit(k, text[1:].split(","))
+            if new is not None:
+                out.append(("$" + ",".join(new) + "\r\n").encode())
+        else:
+            new = edit(k, text[1:text.index("*")].split(","))
+            if new is not None:
+                out.append(_nmea(",".join(new).encode()))
+        k += 1
+    return b"".join(out)
+
+
+def _axes(values):
+    def edit(k, fields):
+        x, y, z = (float(f) for f in fields[2:5])
+        return fields[:2] + [v if isinstance(v, str) else f"{v:+.1f}" for v in values(k, x, y, z)]
+    return edit
+
+
+def _mutate_field(log, rng):
+    lines = _lines(log)
+    weird = WEIRD_FIELDS[rng.integers(len(WEIRD_FIELDS))].encode("utf-8")
+    kinds = sorted({_kind(line) for line in lines})
+    if rng.random() < 0.3:                      # every line of one kind
+        kind = kinds[rng.integers(len(kinds))]
+        index = int(rng.integers(1, 12))
+        lines = [_set_field(line, index, weird, rng) if _kind(line) == kind else line
+                 for line in lines]
+        return b"".join(lines), f"field {index} of every {kind} = {weird[:20]!r}"
+    picks = rng.choice(len(lines), size=int(rng.integers(1, 4)), replace=False)
+    index = int(rng.integers(1, 12))
+    for p in picks:
+        lines[p] = _set_field(lines[p], index, weird, rng)
+    return b"".join(lines), f"field {index} of lines {sorted(picks.tolist())} = {weird[:20]!r}"
+
+
+def _mutate_bytes(log, rng):
+    data = bytearray(log)
+    op = int(rng.integers(10))
+    n = len(data)
+    where = int(rng.integers(0, max(n, 1)))
+    if op == 0:
+        for p in rng.integers(0, n, size=int(rng.integers(1, 20))):
+            data[p] ^= int(rng.integers(1, 256))
+        return bytes(data), "bytes flipped"
+    if op == 1:
+        data[where:where] = b"\x00"
+        return bytes(data), f"NUL inserted at {where}"
+    if op == 2:
+        span = int(rng.integers(1, 5000))
+        del data[where:where + span]
+        return bytes(data), f"{span} bytes deleted at {where}"
+    if op == 3:
+        junk = rng.integers(0, 256, size=int(rng.integers(1, 2000)), dtype=np.uint8).tobytes()
+        data[where:where] = junk
+        return bytes(data), f"{len(junk)} random bytes inserted at {where}"
+    if op == 4:
+        return bytes(data[:where]), f"truncated to {where} bytes"
+    if op == 5:
+        span = int(rng.integers(1, 20000))
+        data[where:where] = data[where:where + span]
+        return bytes(data), f"{span} bytes repeated at {where}"
+    if op == 6:
+        return log.replace(b"\r\n", b"\n"), "bare LF line ends"
+    if op == 7:
+        return log.replace(b"\n", b"\r"), "CR line ends"
+    if op == 8:
+        junk = rng.integers(0, 256, size=512, dtype=np.uint8).tobytes()
+        return junk + log, "512 random bytes before the log"
+    return log + rng.integers(0, 256, size=4096, dtype=np.uint8).tobytes(), "junk appended"
+
+
+def _mutate_lines(log, rng):
+    lines = _lines(log)
+    op = int(rng.integers(9))
+    kinds = ("pmag", "cesium", "gga", "zda")
+    kind = kinds[rng.integers(len(kinds))]
+    if op == 0:
+        return b"".join(l for l in lines if _kind(l) != kind), f"every {kind} line dropped"
+    if op == 1:
+        n = int(rng.integers(0, 60))
+        return b"".join(lines[:n]), f"first {n} lines only"
+    if op == 2:
+        order = rng.permutation(len(lines))
+        return b"".join(lines[i] for i in order), "lines shuffled"
+    if op == 3:
+        return b"".join(reversed(lines)), "lines reversed"
+    if op == 4:
+        return b"".join(l + l for l in lines), "every line twice"
+    if op == 5:
+        return b"".join(sorted(lines)), "lines sorted"
+    if op == 6:
+        return b"".join(lines[::2]), "every other line"
+    if op == 7:
+        return b"".join(l for l in lines if _kind(l) == kind), f"{kind} lines only"
+    keep = [l for l in lines if _kind(l) != "cesium"]
+    one = [l for l in lines if _kind(l) == "cesium"][:1]
+    return b"".join(one + keep), "one cesium line"
+
+
+def _mutate_values(log, rng):
+    op = int(rng.integers(20))
+    axis = int(rng.integers(3))
+    if op == 0:
+        return _rewrite(log, "pmag", _axes(lambda k, x, y, z: (20000.0, 3000.0, 40000.0))), \
+            "samples identical"
+    if op == 1:
+        return _rewrite(log, "pmag", _axes(
+            lambda k, x, y, z: (20000.0, 3000.0, 40000.0) if k % 2 else (-9e3, 25e3, 35e3))), \
+            "two distinct vectors"
+    if op == 2:
+        count = int(rng.integers(3, 14))
+        table = rng.uniform(-40000, 40000, size=(count, 3))
+        return _rewrite(log, "pmag", _axes(lambda k, x, y, z: tuple(table[k % count]))), \
+            f"{count} distinct vectors"
+    if op == 3:
+        value = (0.0, 99999.9, -99999.9, float(rng.uniform(-9e4, 9e4)))[rng.integers(4)]
+
+        def stuck(k, x, y, z):
+            v = [x, y, z]
+            v[axis] = value
+            return tuple(v)
+        return _rewrite(log, "pmag", _axes(stuck)), f"axis {'xyz'[axis]} stuck at {value:g}"
+    if op == 4:
+        return _rewrite(log, "pmag", _axes(lambda k, x, y, z: (0.0, 0.0, 0.0))), "all axes 0"
+    if op == 5:
+        factor = (1e-6, 1e-3, 0.1, 1.9, 10.0)[rng.integers(5)]
+        return _rewrite(log, "pmag", _axes(
+            lambda k, x, y, z: tuple(f"{v * factor:+.1f}" if abs(v * factor) < 1e5
+                                     else f"{v * factor:+.4g}" for v in (x, y, z)))), \
+            f"axes scaled by {factor:g}"
+    if op == 6:
+        return _rewrite(log, "pmag", _axes(lambda k, x, y, z: (x, y, -z))), "z reversed"
+    if op == 7:
+        return _rewrite(log, "pmag", _axes(
+            lambda k, x, y, z: (x + rng.uniform(-5e4, 5e4), y, z))), "x noise of 50,000 nT"
+    if op == 8:
+        value = ("00000.000", "00000.001", "00500.000", "00005.000", "99999.999", "48000.000")[
+            rng.integers(6)]
+        prefix = "1" if rng.random() < 0.2 else " "
+        return _rewrite(log, "cesium", lambda k, f: [prefix + value, f[1]]), \
+            f"cesium all {prefix.strip()}{value}"
+    if op == 9:
+        return _rewrite(log, "cesium", lambda k, f: [
+            f" {rng.uniform(0, 99999.999):09.3f}", f[1]]), "cesium random"
+    if op == 10:
+        year = ("1899", "1900", "2029", "2030", "3000", "9999", "0001")[rng.integers(7)]
+        return _rewrite(log, "zda", lambda k, f: f[:4] + [year] + f[5:]), f"ZDA year {year}"
+    if op == 11:
+        return _rewrite(log, "zda", lambda k, f: f[:2] + ["31", "02"] + f[4:]), "ZDA 31 Feb"
+    if op == 12:
+        altitude = ("100000000.0", "-100000.0", "", "0.0", "99999.0", "1e308")[rng.integers(6)]
+        return _rewrite(log, "gga", lambda k, f: f[:9] + [altitude] + f[10:]), \
+            f"GGA altitude {altitude!r}"
+    if op == 13:
+        return _rewrite(log, "gga", lambda k, f: f[:6] + ["0"] + f[7:]), "GGA without a fix"
+    if op == 14:
+        return _rewrite(log, "gga", lambda k, f: [f[0], f"{235959 - k * 7:06d}.00"] + f[2:]), \
+            "GGA time going back"
+    if op == 15:
+        place = (("9000.00000", "N", "00000.00000", "E"), ("9000.00000", "S", "18000.00000", "W"),
+                 ("0000.00000", "N", "18000.00000", "E"))[rng.integers(3)]
+        return _rewrite(log, "gga", lambda k, f: f[:2] + list(place) + f[6:]), \
+            f"GGA at {place[0]}{place[1]} {place[2]}{place[3]}"
+    if op == 16:
+        return _rewrite(log, "pmag", lambda k, f: f[:1] + [f"{rng.integers(0, 100000):05d}"]
+                        + f[2:]), "random sequence numbers"
+    if op == 17:
+        return _rewrite(log, "pmag", lambda k, f: f[:1] + ["00007"] + f[2:]), \
+            "one sequence number"
+    if op == 18:
+        return _rewrite(log, "pmag", _axes(lambda k, x, y, z: (y, x, z))), "x and y swapped"
+    return _rewrite(log, "pmag", _axes(lambda k, x, y, z: (x + 60000.0 if x < 39999 else x,
+                                                           y, z))), "x offset by 60,000 nT"
+
+
+def _image_patches(facts, rng):
+    """Patches of the card image's structures: [(offset, bytes)], a size, a description."""
+    boot, fat, root = facts["boot"], facts["fat"], facts["root"]
+    size = facts["size"]
+    op = int(rng.integers(8))
+    if op == 0:
+        region = ((0, SECTOR), (boot, 3 * SECTOR), (fat, 4 * SECTOR), (root, SECTOR),
+                  (facts["data"], 4 * SECTOR))[rng.integers(5)]
+        patches = [(int(region[0] + rng.integers(region[1])),
+                    bytes([int(rng.integers(256))])) for _ in range(int(rng.integers(1, 9)))]
+        return patches, size, f"{len(patches)} bytes changed from {region[0]}"
+    if op == 1:
+        name, offset, fmt = [("BytsPerSec", 11, "<H"), ("SecPerClus", 13, "<B"),
+                             ("RsvdSecCnt", 14, "<H"), ("NumFATs", 16, "<B"),
+                             ("TotSec32", 32, "<I"), ("FATSz32", 36, "<I"),
+                             ("RootClus", 44, "<I"), ("FSInfo", 48, "<H"),
+                             ("signature", 510, "<H")][rng.integers(9)]
+        limit = 1 << (8 * struct.calcsize(fmt))
+        value = (0, 1, limit - 1, int(rng.integers(limit)))[rng.integers(4)]
+        return [(boot + offset, struct.pack(fmt, value))], size, f"BPB {name} = {value}"
+    if op == 2:
+        name, offset, fmt = [("type", 4, "<B"), ("LBA", 8, "<I"), ("count", 12, "<I")][
+            rng.integers(3)]
+        limit = 1 << (8 * struct.calcsize(fmt))
+        value = (0, 1, limit - 1, int(rng.integers(limit)))[rng.integers(4)]
+        return [(0x1BE + offset, struct.pack(fmt, value))], size, f"MBR {name} = {value}"
+    if op == 3:
+        cut = int(rng.integers(0, size))
+        return [], cut, f"image truncated to {cut} bytes"
+    if op == 4:
+        where = (0, boot, boot + SECTOR, fat, root)[rng.integers(5)]
+        return [(where, bytes(SECTOR))], size, f"sector at {where} zeroed"
+    if op == 5:
+        cluster = int(rng.integers(2, 40))
+        value = (0, 0x0FFFFFF7, cluster, 0x0FFFFFFF, int(rng.integers(1 << 32)))[rng.integers(5)]
+        return [(fat + 4 * cluster, struct.pack("<I", value))], size, \
+            f"FAT entry {cluster} = {value:#x}"
+    if op == 6:
+        entry = root + 32 * int(rng.integers(0, 4))
+        name, offset, fmt = [("size", 28, "<I"), ("cluster", 26, "<H"), ("attr", 11, "<B"),
+                             ("name", 0, "<B")][rng.integers(4)]
+        limit = 1 << (8 * struct.calcsize(fmt))
+        value = (0, limit - 1, int(rng.integers(limit)))[rng.integers(3)]
+        return [(entry + offset, struct.pack(fmt, value))], size, \
+            f"directory entry at {entry}: {name} = {value}"
+    junk = rng.integers(0, 256, size=SECTOR, dtype=np.uint8).tobytes()
+    where = (facts["data"] + SECTOR * int(rng.integers(0, 64)))
+    return [(where, junk)], size, f"log data sector at {where} replaced by noise"
+
+
+def _attitude_case(rng, base_csv):
+    header = b"t,roll_deg,pitch_deg,heading_deg\n"
+    rows = base_csv.split(b"\n", 1)[1]
+    options = [
+        (None, "missing"), (b"", "empty"),
+        (rng.integers(0, 256, size=3000, dtype=np.uint8).tobytes(), "binary"),
+        (header, "header only"), (header + b"1,0,0,nan\n2,0,0,1\n", "NaN"),
+        (header + b"1,0,0,10\n2,0,0,10\n", "times not overlapping"),
+        (base_csv, "good"), (header + b"1,0,0,1e400\n2,0,0,1\n", "infinite"),
+        (b"heading_deg,t,pitch_deg,roll_deg\n" + rows, "columns reordered (values not)"),
+        (header + b"9" * 5000 + b",0,0,1\n", "5000 digits"),
+        ("dir", "a folder"), (header + rows.replace(b",", b";"), "semicolons"),
+        (header + rows[:len(rows) // 3], "cut short"),
+    ]
+    return options[rng.integers(len(options))]
+
+
+def make_case(index, seed, facts):
+    """Input number ``index`` of the run seeded ``seed`` (its class cycles through
+    :data:`CLASSES`; without an image the image class becomes a log class)."""
+    rng = np.random.default_rng([seed, index])
+    kind = CLASSES[index % len(CLASSES)]
+    if kind == "image" and facts.get("image") is None:
+        kind = "log:bytes"
+    base = Path(facts["base"])
+    log = (base / "uav.log").read_bytes()
+    card = "{work}/LOG00001.TXT"
+    argv = ["calibrate", card]
+    files, image, image_size = {}, None, None
+    method = ("pso", "lm", "lm", "ellipsoid")[rng.integers(4)]
+    if kind == "image":
+        image, image_size, detail = _image_patches(facts["image"], rng)
+        argv = ["calibrate", "{work}/card.img", "--method", "lm"]
+    elif kind.startswith("log:"):
+        if method == "ellipsoid":
+            log = (base / "full.log").read_bytes()
+        mutate = {"log:field": _mutate_field, "log:bytes": _mutate_bytes,
+                  "log:lines": _mutate_lines, "log:values": _mutate_values}[kind]
+        data, detail = mutate(log, rng)
+        files["LOG00001.TXT"] = data
+        ref = ("cesium", "cesium", "igrf", "50000")[rng.integers(4)]
+        argv += ["--method", method, "--ref", ref]
+        detail += f" (--method {method} --ref {ref})"
+    else:
+        files["LOG00001.TXT"] = log
+        if kind == "option:ref":
+            value = REFS[rng.integers(len(REFS))]
+            argv += ["--ref", value, "--method", "lm"]
+            detail = f"--ref {value!r}"
+        elif kind == "option:seed":
+            value = SEEDS[rng.integers(len(SEEDS))]
+            argv += ["--seed", value]
+            detail = f"--seed {value[:40]!r}"
+        elif kind == "option:method":
+            value = METHODS[rng.integers(len(METHODS))]
+            argv += ["--method", value]
+            detail = f"--method {value!r}"
+        elif kind == "option:out":
+            files["blocker"] = b"a file where a folder should be"
+            outs = ["{work}/blocker", "{work}/blocker/sub", "/proc/maglog-report", "/proc",
+                    "/dev/null", "", "{work}/" + "n" * 300, "{work}/a/b/c", "{work}/stale",
+                    "{work}/with space", "."]
+            value = outs[rng.integers(len(outs))]
+            if value == "{work}/stale":
+                files["stale/heading_error.png"] = b"an earlier run's plot"
+                files["stale/mine.txt"] = b"the user's own file"
+            argv += ["--method", "lm"]
+            detail = f"--out {value[:60]!r}"
+            return Case(index, kind, detail, argv + ["--out", value], files, out=value)
+        elif kind == "option:attitude":
+            content, what = _attitude_case(rng, (base / "attitude.csv").read_bytes())
+            if content == "dir":
+                files["attitude/keep"] = b""
+            elif content is not None:
+                files["attitude.csv"] = content
+            target = "{work}/attitude" if content == "dir" else "{work}/attitude.csv"
+            argv += ["--attitude", target, "--method", "lm"]
+            detail = f"--attitude: {what}"
+        else:
+            choices = [("{work}/missing.img", "missing"), ("{work}", "a folder"),
+                       ("{work}/empty.img", "empty"), ("/dev/null", "/dev/null"),
+                       ("/proc/version", "/proc/version"), ("{base}/attitude.csv", "a CSV"),
+                       ("{work}/zeros.img", "1 GiB of zeros (sparse)"),
+                       ("{work}/LOG00001.TXT", "good log"), ("", "empty name")]
+            path, detail = choices[rng.integers(len(choices))]
+            files["empty.img"] = b""
+            if path.endswith("zeros.img"):
+                files["zeros.img"] = 1 << 30             # a sparse file of this size
+            argv = ["calibrate", path, "--method", "lm"]
+            detail = f"card: {detail}"
+    return Case(index, kind, detail, argv + ["--out", "{work}/report"], files, image,
+                image_size)
+
+
+# --- running --------------------------------------------------------------------------------
+
+class _Timeout(BaseException):
+    """Raised by the alarm: not an Exception, so no handler in the code under test eats it."""
+
+
+def _alarm(signum, frame):
+    raise _Timeout()
+
+
+def _worker_init():
+    import numba
+    numba.set_num_threads(1)              # one worker per core already
+    signal.signal(signal.SIGALRM, _alarm)
+
+
+def _materialise(case, work, base):
+    for name, content in case.files.items():
+        path = work / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if isinstance(content, int):
+            with open(path, "wb") as f:
+                f.truncate(content)
+        else:
+            path.write_bytes(content)
+    if case.image is not None:
+        image = work / "card.img"
+        size = case.image_size
+        _sparse_copy(base / "card.img", image, size)
+        with open(image, "r+b") as f:
+            for offset, data in case.image:
+                if offset < size:
+                    f.seek(offset)
+                    f.write(data[:size - offset])
+
+
+def run_case(case, base, time_limit=TIME_LIMIT):
+    """Run one input through ``maglog.sim.cli.main`` in this process; its outcome."""
+    from maglog.sim.cli import main
+    base = Path(base)
+    work = Path(tempfile.mkdtemp(prefix=f"mutant{case.index}-"))
+    here = os.getcwd()
+    subst = lambda text: text.replace("{work}", str(work)).replace("{base}", str(base))
+    argv = [subst(a) for a in case.argv]
+    out, err = io.StringIO(), io.StringIO()
+    result = {"index": case.index, "kind": case.kind, "detail": case.detail}
+    start = time.perf_counter()
+    try:
+        _materialise(case, work, base)
+        os.chdir(work)                    # a relative --out lands in the scratch folder
+        signal.alarm(time_limit)
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                status = main(argv)
+        except SystemExit as exit_:
+            status = exit_.code
+        finally:
+            signal.alarm(0)
+        result.update(_classify(status, err.getvalue(), Path(subst(case.out))
+                                if case.out else work))
+    except _Timeout:
+        result.update(outcome="hang", reason=f"no answer within {time_limit} s")
+    except Exception as error:           # what escaped main: the failure counted here
+        frames = traceback.extract_tb(error.__traceback__)
+        where = frames[-1] if frames else None
+        at = f" at {Path(where.filename).name}:{where.lineno}" if where else ""
+        result.update(outcome="traceback",
+                      reason=f"{type(error).__name__}: {str(error)[:160]}{at}")
+    finally:
+        signal.alarm(0)
+        os.chdir(here)
+        shutil.rmtree(work, ignore_errors=True)
+    result["seconds"] = round(time.perf_counter() - start, 3)
+    return result
+
+
+def _classify(status, err, out):
+    last = err.strip().splitlines()[-1] if err.strip() else ""
+    if status == 1:
+        if last.startswith("maglog: error: ") and "Traceback" not in err:
+            return {"outcome": "error", "reason": last[len("maglog: error: "):][:200]}
+        return {"outcome": "nonsense", "reason": f"exit 1 without a message: {last[:200]!r}"}
+    if status == 2:
+        return {"outcome": "usage", "reason": last[:200]}
+    if status not in (0, None):
+        return {"outcome": "nonsense", "reason": f"exit status {status!r}: {last[:160]!r}"}
+    return _judge_report(out)
+
+
+def _judge_report(out):
+    import html5lib
+
+    def refuse(name):
+        raise ValueError(f"{name} is not JSON")
+    try:
+        summary = json.loads((out / "parameters.json").read_text(), parse_constant=refuse)
+    except (OSError, ValueError) as error:
+        return {"outcome": "nonsense", "reason": f"parameters.json: {error}"[:200]}
+    try:
+        html5lib.HTMLParser(strict=True).parse((out / "report.html").read_bytes())
+    except Exception as error:            # html5lib's ParseError, or the file missing
+        return {"outcome": "nonsense", "reason": f"report.html: {error}"[:200]}
+    if summary.get("method") == "ellipsoid":
+        numbers = [summary.get("center_nT"), summary.get("W")]
+    else:
+        numbers = [summary.get("K"), summary.get("c")]
+    finite = all(v is not None and np.all(np.isfinite(np.asarray(v, dtype=float)))
+                 for v in numbers)
+    before, after = summary.get("rms_before_nT"), summary.get("rms_after_nT")
+    plausible = (finite and before is not None and after is not None and after < before
+                 and after < PLAUSIBLE_RMS_NT and summary.get("success") is True)
+    warnings = summary.get("warnings") or []
+    if plausible and not warnings:
+        return {"outcome": "ok", "reason": f"{after:.3g} nT RMS after"}
+    if warnings:
+        return {"outcome": "warned", "reason": warnings[0][:200]}
+    return {"outcome": "nonsense", "reason": f"exit 0: finite {finite}, RMS {before} -> "
+                                             f"{after} nT, success {summary.get('success')}, "
+                                             "no warning"}
+
+
+def run(count, *, seed=10, processes=None, time_limit=TIME_LIMIT, progress=None):
+    """Generate and run ``count`` inputs; the results (one dict per input) in input order."""
+    tools = fat_tools()
+    with tempfile.TemporaryDirectory(prefix="maglog-mutants-") as folder:
+        facts = make_base(folder, tools)
+        facts["base"] = folder
+        cases = [make_case(i, seed, facts) for i in range(count)]
+        processes = processes or min(2, os.cpu_count() or 1)
+        context = multiprocessing.get_context("spawn")
+        results = []
+        with context.Pool(processes, initializer=_worker_init) as pool:
+            jobs = [pool.apply_async(run_case, (case, folder, time_limit)) for case in cases]
+            for case, job in zip(cases, jobs):
+                try:
+                    result = job.get(timeout=time_limit + 60)
+                except multiprocessing.TimeoutError:
+                    result = {"index": case.index, "kind": case.kind, "detail": case.detail,
+                              "outcome": "hang", "reason": "the worker did not answer"}
+                results.append(result)
+                if progress:
+                    progress(result)
+        return results, tools is not None
+
+
+def counts(results):
+    """Totals by outcome, and by class and outcome."""
+    total = Counter(r["outcome"] for r in results)
+    by_class = {}
+    for r in results:
+        by_class.setdefault(r["kind"], Counter())[r["outcome"]] += 1
+    return ({o: total.get(o, 0) for o in OUTCOMES},
+            {k: {o: c.get(o, 0) for o in OUTCOMES} for k, c in sorted(by_class.items())})
+
+
+def failures(results):
+    return [r for r in results if r["outcome"] in FAILURES]
