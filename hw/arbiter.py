@@ -54,7 +54,10 @@ class FrameArbiter(wiring.Component):
         m = Module()
         n = self._channels
 
-        grant = Signal(range(n), init=n - 1)   # channel served (or last served when idle)
+        # At least one bit, as the payload's `channel`: with one channel a zero-width index
+        # would be `[-1:0]` in the Verilog (Verilator: ASCRANGE).
+        index = range(max(n, 2))
+        grant = Signal(index, init=n - 1)      # channel served (or last served when idle)
         busy  = Signal()
 
         valids = Cat(self.i[k].valid for k in range(n))
@@ -63,7 +66,7 @@ class FrameArbiter(wiring.Component):
             # Round robin: try grant+1, grant+2, ... in that order; the first ready wins.
             # Walk the priority order backwards so the highest priority is assigned last.
             for step in reversed(range(1, n + 1)):
-                candidate = Signal(range(n), name=f"candidate_{step}")
+                candidate = Signal(index, name=f"candidate_{step}")
                 m.d.comb += candidate.eq(Mux(grant + step >= n, grant + step - n, grant + step))
                 with m.If(valids.bit_select(candidate, 1)):
                     m.d.sync += [grant.eq(candidate), busy.eq(1)]

@@ -37,10 +37,13 @@ from maglog.sim.cocotb_run import (VERILATOR_WAIVERS, CocotbBuild, simulator_env
                                    verilator_bin_dir, verilator_waiver_args)
 
 #: Every top converted for cocotb or the CLI: name → Verilog text. The front end in both
-#: configurations the project builds (the logger's three channels, and four NMEA lines for
+#: configurations the project builds (the logger's three channels, one PMAG line as the
+#: benchmarks use, and four NMEA lines for
 #: the captures), the SDRAM controller as its cocotb test and the logger configure it.
 TOPS = {
     TOPLEVEL_NAME: lambda: generate_verilog(FrontEnd(DEFAULT_CHANNELS)),
+    "maglog_frontend_pmag1": lambda: verilog.convert(
+        FrontEnd([ChannelConfig(ChannelKind.PMAG, 115200)]), name="maglog_frontend_pmag1"),
     "maglog_frontend_nmea4": lambda: verilog.convert(
         FrontEnd([ChannelConfig(ChannelKind.NMEA, 9600)] * 4), name="maglog_frontend_nmea4"),
     "maglog_sdio": lambda: verilog.convert(SdioHost(), name="maglog_sdio"),
