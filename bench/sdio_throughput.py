@@ -57,7 +57,8 @@ class RecordingCard:
 def measure(blocks, *, sys_clock_hz, busy_clocks, seed):
     host = SdioHost()
     regs = RegisterMap(host.bus.memory_map)
-    port = StreamBlockPort(host)
+    # The simulation runs at the clock the driver is told (one figure for both).
+    port = StreamBlockPort(host, clock_period=1 / sys_clock_hz)
     card = SdCard(CardImage(1 << 16), seed=seed, busy_clocks=busy_clocks)
     recorder = RecordingCard(card)
     data = bytes((k * 7) & 0xFF for k in range(blocks * arch.BLOCK_BYTES))
@@ -87,7 +88,7 @@ def measure(blocks, *, sys_clock_hz, busy_clocks, seed):
 
     start = time.perf_counter()
     run_simulation(host, [firmware], background=[card_side, dat_watch, cycle_count, port.source, port.sink],
-                   name="sdio_throughput")
+                   name="sdio_throughput", clock_period=1 / sys_clock_hz)
     wall = time.perf_counter() - start
     if card.errors:
         raise RuntimeError(f"the card model reported: {card.errors[:3]}")
