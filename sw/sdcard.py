@@ -62,6 +62,12 @@ IF_COND_PATTERN = 0xAA
 IF_COND_VOLTAGE = 0x1               # 2.7-3.6 V
 CMD_RETRIES = 3
 WRITE_RETRIES = 2
+#: After a failed write the card may still program (prg) the block whose busy outlasted the
+#: host's timeout; it is polled with CMD13 (legal in prg) until it is back in tran for this
+#: long, twice the write timeout of PLSS §4.6.2.2 (250 ms), before the write is given up.
+RECOVER_LIMIT_S = 0.5
+#: Time between two CMD13 polls while waiting for tran.
+RECOVER_POLL_S = 100e-6
 #: Card status bits that mean this command (or its data) failed. COM_CRC_ERROR and
 #: ILLEGAL_COMMAND are about the previous command (PLSS §4.10.1, clear condition B): a
 #: command the card did not take got no response, which the driver has already seen.
@@ -280,8 +286,14 @@ class SdCardDriver:
         done = 0
         failures = 0
         while done < count:
-            accepted, error = await self._write_run(lba + done, done, count - done, source,
-                                                    pre_erase)
+            try:
+                accepted, error = await self._write_run(lba + done, done, count - done,
+                                                        source, pre_erase)
+            except SdError as failure:
+                # A command of the run itself failed (no response, error bits): what is
+                # written stays written, and the caller learns how much that is.
+                raise SdWriteError(f"writing block {lba + done} failed: {failure}",
+                                   done) from failure
             done += accepted
             if error is None:
                 continue
@@ -289,7 +301,26 @@ class SdCardDriver:
             self.retries += 1
             if failures > WRITE_RETRIES:
                 raise SdWriteError(f"writing block {lba + done} failed: {error}", done)
+            try:
+                await self._wait_tran()
+            except SdError as failure:
+                raise SdWriteError(f"writing block {lba + done} failed: {error}; then "
+                                   f"{failure}", done) from failure
         return done
+
+    async def _wait_tran(self):
+        """Poll the card status (CMD13) until the card is back in tran, ready for data."""
+        start = self.bus.now()
+        while True:
+            status = await self.card_status()
+            state = (status & arch.STATUS_STATE_MASK) >> arch.STATUS_STATE_SHIFT
+            if state == arch.CardState.TRAN and status & arch.CardStatus.READY_FOR_DATA:
+                return
+            if self.bus.now() - start > RECOVER_LIMIT_S:
+                name = next((s.name for s in arch.CardState if s == state), str(state))
+                raise SdTimeout(f"the card stayed in state {name} for {RECOVER_LIMIT_S:g} s "
+                                f"after a failed write")
+            await self.bus.wait(RECOVER_POLL_S)
 
     async def _write_run(self, lba, first, count, source, pre_erase):
         regs = self.regs

@@ -149,11 +149,6 @@ def test_faults_are_retried_and_nothing_is_silently_lost(faults):
     assert card.errors == []
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "sw/sdcard.py: after a busy timeout the driver sends CMD12 and retries at once (ACMD23) "
-    "while the card still programs; the card rejects it as illegal in prg and the write ends "
-    "in SdTimeout('CMD23 got no response') with no count of the blocks written. write_from's "
-    "documented status check after CMD12 (wait for tran) is missing."))
 def test_busy_past_the_timeout_is_reported_with_the_blocks_written():
     card = new_card(seed=6, faults=Faults(busy_past_timeout=1,
                                           busy_past_timeout_clocks=3000))
