@@ -338,8 +338,8 @@ def _reference(parsed, ref, mag_axis, use_time, notes):
         parsed = _cesium_in_range(parsed, notes)
         ces = parsed.cesium
         if len(ces) < 2:
-            raise CalibrationError("the log has fewer than 2 cesium samples; use --ref igrf "
-                                   "or a value")
+            raise CalibrationError(f"{parsed.name}: fewer than 2 cesium samples; use --ref "
+                                   "igrf or a value")
         if use_time:
             # The parser's interpolation: NaN outside the cesium span and across dropouts.
             return to_arrays(parsed).cesium, "cesium magnetometer"
@@ -349,11 +349,16 @@ def _reference(parsed, ref, mag_axis, use_time, notes):
         import ppigrf
         gga = parsed.gga
         if not np.any(gga.quality > 0):
-            raise CalibrationError("the log has no GGA with a fix: IGRF needs a position")
-        when, dated = _igrf_date(parsed)
+            raise CalibrationError(f"{parsed.name}: no GGA with a fix: IGRF needs a position")
+        try:
+            when, dated = _igrf_date(parsed)
+        except CalibrationError as error:
+            raise CalibrationError(f"{parsed.name}: {error}; use --ref cesium or a value") \
+                from None
         good = _igrf_fixes(parsed, notes)
         if not np.any(good):
-            raise CalibrationError("no GPS fix with a position and a plausible altitude "
+            raise CalibrationError(f"{parsed.name}: no GPS fix with a position and a plausible "
+                                   "altitude "
                                    f"({ALTITUDE_RANGE_M[0]:,.0f}..{ALTITUDE_RANGE_M[1]:,.0f} m): "
                                    "IGRF needs one")
         east, north, up = ppigrf.igrf(gga.lon[good], gga.lat[good],

@@ -455,10 +455,53 @@ def _attitude_case(rng, base_csv):
     return options[rng.integers(len(options))]
 
 
+def _known(log, full):
+    """The inputs issue 10's own run found failing, one each: every run starts with them."""
+    zda_day = lambda k, f: f[:2] + ["9999999999999999999"] + f[3:]
+    cases = [
+        ("log:field", "ZDA day of 19 digits", _rewrite(log, "zda", zda_day), []),
+        ("log:field", "ZDA 9999-12-31 at the leap second",
+         _rewrite(log, "zda", lambda k, f: [f[0], "235960.50", "31", "12", "9999"] + f[5:]), []),
+        ("log:field", "GGA fix quality 2**63",
+         _rewrite(log, "gga", lambda k, f: f[:6] + [str(2**63)] + f[7:]), []),
+        ("log:field", "x axis of 309 digits",
+         _rewrite(log, "pmag", _axes(lambda k, x, y, z: ("9" * 309, y, z))), []),
+        ("log:values", "cesium all 0 nT", _rewrite(log, "cesium", lambda k, f: [" 00000.000", f[1]]),
+         []),
+        ("log:values", "samples identical",
+         _rewrite(log, "pmag", _axes(lambda k, x, y, z: (2e4, 3e3, 4e4))), []),
+        ("log:values", "two distinct vectors", _rewrite(log, "pmag", _axes(
+            lambda k, x, y, z: (2e4, 3e3, 4e4) if k % 2 else (-9e3, 2.5e4, 3.5e4))), []),
+        ("log:values", "z stuck at 99999.9, ellipsoid",
+         _rewrite(full, "pmag", _axes(lambda k, x, y, z: (x, y, 99999.9))),
+         ["--method", "ellipsoid"]),
+        ("log:values", "all axes 0", _rewrite(log, "pmag", _axes(lambda k, x, y, z: (0., 0., 0.))),
+         []),
+        ("log:values", "sub-nT axes", _rewrite(log, "pmag", _axes(
+            lambda k, x, y, z: tuple(f"{v * 1e-5:+.4f}" for v in (x, y, z)))), []),
+        ("log:values", "IGRF in the year 3000",
+         _rewrite(log, "zda", lambda k, f: f[:4] + ["3000"] + f[5:]), ["--ref", "igrf"]),
+        ("log:values", "IGRF at 1e8 m",
+         _rewrite(log, "gga", lambda k, f: f[:9] + ["100000000.0"] + f[10:]), ["--ref", "igrf"]),
+        ("log:bytes", "one NUL in the first 64 KiB", log[:5000] + b"\x00" + log[5000:], []),
+        ("option:ref", "--ref 5", log, ["--ref", "5"]),
+        ("option:ref", "--ref 1e30", log, ["--ref", "1e30"]),
+        ("option:ref", "--ref 1e308", log, ["--ref", "1e308"]),
+    ]
+    return cases
+
+
 def make_case(index, seed, facts):
-    """Input number ``index`` of the run seeded ``seed`` (its class cycles through
-    :data:`CLASSES`; without an image the image class becomes a log class)."""
+    """Input number ``index`` of the run seeded ``seed``: first the issue's own failing
+    inputs (:func:`_known`), then classes cycling through :data:`CLASSES` (without an
+    image the image class becomes a log class)."""
     rng = np.random.default_rng([seed, index])
+    base = Path(facts["base"])
+    known = _known((base / "uav.log").read_bytes(), (base / "full.log").read_bytes())
+    if index < len(known):
+        kind, detail, data, args = known[index]
+        return Case(index, kind, detail, ["calibrate", "{work}/LOG00001.TXT", *args,
+                                          "--out", "{work}/report"], {"LOG00001.TXT": data})
     kind = CLASSES[index % len(CLASSES)]
     if kind == "image" and facts.get("image") is None:
         kind = "log:bytes"
