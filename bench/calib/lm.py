@@ -27,10 +27,10 @@ import numpy as np
 BENCH = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(BENCH))
 
-from _machine import load, packages, write_report  # noqa: E402
+from _machine import load, packages, write_report
 
-from maglog.calib import _pso, scalar  # noqa: E402
-from maglog.sim.scenario import COVERAGES, make_flight  # noqa: E402
+from maglog.calib import _pso, scalar
+from maglog.sim.scenario import COVERAGES, make_flight
 
 DEFAULT_OUTPUT = BENCH / "results" / "calib_lm.json"
 

@@ -23,9 +23,9 @@ BENCH = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(BENCH))
 sys.path.insert(0, str(BENCH.parent / "tests" / "calib"))
 
-from _machine import command_version, load, packages, write_report  # noqa: E402
+from _machine import command_version, load, packages, write_report
 
-import mutants  # noqa: E402
+import mutants
 
 DEFAULT_OUTPUT = BENCH / "results" / "calib_mutation.json"
 

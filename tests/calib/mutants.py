@@ -466,8 +466,8 @@ def _known(log, full):
          _rewrite(log, "gga", lambda k, f: f[:6] + [str(2**63)] + f[7:]), []),
         ("log:field", "x axis of 309 digits",
          _rewrite(log, "pmag", _axes(lambda k, x, y, z: ("9" * 309, y, z))), []),
-        ("log:values", "cesium all 0 nT", _rewrite(log, "cesium", lambda k, f: [" 00000.000", f[1]]),
-         []),
+        ("log:values", "cesium all 0 nT",
+         _rewrite(log, "cesium", lambda k, f: [" 00000.000", f[1]]), []),
         ("log:values", "samples identical",
          _rewrite(log, "pmag", _axes(lambda k, x, y, z: (2e4, 3e3, 4e4))), []),
         ("log:values", "two distinct vectors", _rewrite(log, "pmag", _axes(

@@ -6,13 +6,16 @@ A short run (55 inputs, every class) is in the default suite; the long one (1,21
 under ``-m slow``. ``bench/calib/mutation.py`` runs the long one and writes its counts.
 """
 
+import importlib
 import sys
 from pathlib import Path
 
 import pytest
 
+# The helper module beside this file (tests are no package): on sys.path by name, so that
+# the run's worker processes import it too.
 sys.path.insert(0, str(Path(__file__).parent))
-import mutants  # noqa: E402  (a helper module beside this file, not a package)
+mutants = importlib.import_module("mutants")
 
 
 def _check(results):
