@@ -113,23 +113,25 @@ def main(argv=None):
                 if name == "hand":
                     (x, cost, steps, stop), best, median = best_of(
                         lambda: hand_lm(start, b, r, lower, upper), args.repeat)
-                    status = None
+                    status, solver = None, "hand"
                 else:
                     out, best, median = best_of(
                         lambda: scalar._polish(start, b, r, lower, upper, solver=name),
                         args.repeat)
                     x, cost, steps, status = out.x, out.cost, out.nfev, out.status
+                    solver = out.solver     # "lm" from a start on the box's wall is trf
                     stop = scalar.STATUS_MESSAGES[status]
                 k, c = _pso.unpack(x)
                 k_ref, c_ref = _pso.unpack(reference.x)
                 row = {"coverage": coverage, "start": start_name, "polish": name,
+                       "solver_used": solver,
                        "samples": len(b), "seconds_best": best, "seconds_median": median,
                        "cost": cost, "rms_nT": float(np.sqrt(cost / len(b))),
                        "steps": int(steps), "status": status, "stop": stop,
                        "max_abs_dK_vs_lm": float(np.max(np.abs(k - k_ref))),
                        "max_abs_dc_vs_lm_nT": float(np.max(np.abs(c - c_ref)))}
                 rows.append(row)
-                print(f"{coverage:7s} {start_name:8s} {name:4s} {best * 1e3:7.2f} ms "
+                print(f"{coverage:7s} {start_name:8s} {name:4s}->{solver:4s} {best * 1e3:7.2f} ms "
                       f"(median {median * 1e3:7.2f}) rms {row['rms_nT']:.5f} nT "
                       f"steps {steps:3d} dK {row['max_abs_dK_vs_lm']:.1e} "
                       f"dc {row['max_abs_dc_vs_lm_nT']:.1e} nT  {stop}")
