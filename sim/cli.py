@@ -258,27 +258,26 @@ def _cmd_demo(args):
 
 
 def _reference_arg(text):
-    if text in ("cesium", "igrf"):
-        return text
+    from ..calib.pipeline import CalibrationError, check_reference
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"reference must be cesium, igrf or a total field in nT, not {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"a reference field must be positive, not {text!r}")
-    return value
+        return check_reference(text)
+    except CalibrationError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def _cmd_calibrate(args):
     from ..calib.card import CardError
-    from ..calib.pipeline import CalibrationError, calibrate_card, write_report
+    from ..calib.pipeline import (CalibrationError, calibrate_card, check_output_dir,
+                                  write_report)
     card = Path(args.card)
     if not card.exists():
         raise CliError(f"{card}: no such file")
     if card.is_dir():
         raise CliError(f"{card}: is a folder, not a card image or log")
-    out = _out_dir(args.out)        # before the fit: a bad --out is said at once
+    try:
+        out = check_output_dir(args.out)    # before the fit: a bad --out is said at once
+    except CalibrationError as error:
+        raise CliError(str(error)) from None
     _progress(f"[1/3] reading {card}")
     try:
         run = calibrate_card(card, ref=args.ref, method=args.method, seed=args.seed,
@@ -307,7 +306,7 @@ def _cmd_calibrate(args):
         align = heading["alignment"]
         print(f"heading offset {align['offset_deg']:+.2f} deg from {len(align['legs'])} "
               "straight, level legs (removed from the aligned headings)")
-    for warning in getattr(run.result, "warnings", []):
+    for warning in run.warnings:
         print(f"warning: {warning}")
     print(f"report: {paths['markdown']}")
     print(f"parameters: {paths['json']}")

@@ -86,6 +86,8 @@ OPTIONS = [
     (["hdl", "verilog"], "--channels", ["pmag:0", "pmag:-5", "pmag:1e6", "pmag:9600,",
                                         "pmag:10000000000", "nmea:٩٦٠٠"]),
     (["calibrate", "card.img"], "--seed", ["-1", "4294967296", "1.5"]),
+    (["calibrate", "card.img"], "--ref", ["0", "5", "999.9", "1e30", "1e308", "-48000",
+                                          "inf", "nan", "", "IGRF", "cesium,igrf"]),
     (["demo"], "--seconds", ["0", "3600.5", "1e6", "1e9"]),
     (["demo"], "--seed", ["-1", "4294967296", "2.0"]),
     (["demo"], "--divisor", ["0", "65536", "100000", "1000000000"]),
@@ -152,7 +154,8 @@ def test_output_folder_the_os_refuses(command, tmp_path, capsys):
                        ("/proc/maglog/x", "/proc/maglog")):
         assert main(command + ["--out", str(out)]) == 1
         err = capsys.readouterr().err
-        assert err.startswith(f"maglog: error: {named}: ") and err.count("\n") == 1, err
+        assert err.startswith("maglog: error: ") and err.count("\n") == 1, err
+        assert str(named) in err
 
 
 def test_unreadable_card_is_one_line(tmp_path, capsys):
