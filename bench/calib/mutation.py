@@ -25,6 +25,7 @@ sys.path.insert(0, str(BENCH.parent / "tests" / "calib"))
 
 from _machine import command_version, load, packages, write_report
 
+import cards
 import mutants
 
 DEFAULT_OUTPUT = BENCH / "results" / "calib_mutation.json"
@@ -55,7 +56,8 @@ def main(argv=None):
         if sum(done.values()) % 100 == 0:
             print(f"{sum(done.values())}/{args.inputs}: {dict(done)}", file=sys.stderr)
 
-    results, with_images = mutants.run(args.inputs, seed=args.seed, processes=args.processes,
+    results, with_images = mutants.run(args.inputs, seed=args.seed, tools=cards.find_fat_tools(),
+                                          processes=args.processes,
                                        time_limit=args.time_limit, progress=progress)
     seconds = time.perf_counter() - start
     totals, by_class = mutants.counts(results)

@@ -35,7 +35,6 @@ import os
 import shutil
 import signal
 import struct
-import subprocess
 import tempfile
 import time
 import traceback
@@ -44,6 +43,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from cards import FS_LBA, SECTOR, card_image
 
 #: Input classes, in the order a run cycles through them.
 CLASSES = ("image", "log:field", "log:bytes", "log:lines", "log:values", "option:ref",
@@ -56,9 +57,6 @@ PLAUSIBLE_RMS_NT = 1000.0
 #: Seconds an input may take (a PSO fit and a report take a few on a loaded machine).
 TIME_LIMIT = 120
 
-FS_LBA = 2048
-FS_SECTORS = 131072                   # 64 MiB: a legal FAT32 with one-sector clusters
-SECTOR = 512
 
 #: Field values a new user's files and fingers produce.
 WEIRD_FIELDS = ("", "0", "-0", "00000", "9" * 309, "1e308", "-1e308", "1e-308", "nan", "inf",
@@ -90,13 +88,6 @@ class Case:
 
 # --- base material ------------------------------------------------------------------------
 
-def fat_tools():
-    """mkfs.fat and mcopy, name -> path, or None when either is missing."""
-    search = os.pathsep.join([os.environ.get("PATH", os.defpath), "/usr/sbin", "/sbin"])
-    found = {name: shutil.which(name, path=search) for name in ("mkfs.fat", "mcopy")}
-    return found if all(found.values()) else None
-
-
 def make_base(folder, tools):
     """Logs, an attitude file and (with ``tools``) a card image the mutants start from;
     returns facts about them (image regions) for the generator."""
@@ -110,27 +101,9 @@ def make_base(folder, tools):
     facts = {"image": None}
     if tools:
         image = folder / "card.img"
-        _card_image(tools, image, {"LOG00001.TXT": uav.log(), "NOTES.TXT": b"notes\r\n"})
+        card_image(tools, image, {"LOG00001.TXT": uav.log(), "NOTES.TXT": b"notes\r\n"})
         facts["image"] = _image_facts(image)
     return facts
-
-
-def _card_image(tools, path, files):
-    with open(path, "wb") as f:
-        f.truncate((FS_LBA + FS_SECTORS) * SECTOR)
-        entry = struct.pack("<B3sB3sII", 0x00, b"\0\0\0", 0x0C, b"\0\0\0", FS_LBA, FS_SECTORS)
-        f.seek(0x1BE)
-        f.write(entry)
-        f.seek(0x1FE)
-        f.write(b"\x55\xAA")
-    subprocess.run([tools["mkfs.fat"], "-F", "32", "-s", "1", "--offset", str(FS_LBA),
-                    "-h", str(FS_LBA), str(path), str(FS_SECTORS // 2)],
-                   check=True, capture_output=True)
-    for name, data in files.items():
-        source = path.parent / name
-        source.write_bytes(data)
-        subprocess.run([tools["mcopy"], "-i", f"{path}@@{FS_LBA * SECTOR}", str(source),
-                        f"::{name}"], check=True, capture_output=True)
 
 
 def _image_facts(path):
@@ -696,9 +669,11 @@ def _judge_report(out):
                                              "no warning"}
 
 
-def run(count, *, seed=10, processes=None, time_limit=TIME_LIMIT, progress=None):
-    """Generate and run ``count`` inputs; the results (one dict per input) in input order."""
-    tools = fat_tools()
+def run(count, *, seed=10, tools=None, processes=None, time_limit=TIME_LIMIT, progress=None):
+    """Generate and run ``count`` inputs; the results (one dict per input) in input order.
+
+    ``tools`` are the FAT tools (name -> path) the card images are built with: the tests
+    pass the ``fat_tools`` fixture's; without them the card-image classes are left out."""
     with tempfile.TemporaryDirectory(prefix="maglog-mutants-") as folder:
         facts = make_base(folder, tools)
         facts["base"] = folder

@@ -30,14 +30,14 @@ def _check(results):
 
 
 def test_short_mutation_run(fat_tools):
-    results, with_images = mutants.run(55, seed=10)
+    results, with_images = mutants.run(55, seed=10, tools=fat_tools)
     assert with_images and len(results) == 55
     _check(results)
 
 
 @pytest.mark.slow
 def test_long_mutation_run(fat_tools):
-    results, with_images = mutants.run(1210, seed=20)
+    results, with_images = mutants.run(1210, seed=20, tools=fat_tools)
     assert with_images and len(results) == 1210
     _check(results)
 

@@ -5,8 +5,8 @@ ending in one-line messages (issue 10, "Messages, not tracebacks")."""
 import errno
 import json
 import os
-import struct
-import subprocess
+import sys
+from pathlib import Path
 
 import html5lib
 import numpy as np
@@ -19,9 +19,11 @@ from maglog.calib.pipeline import (REFERENCE_RANGE_NT, SEED_RANGE, CalibrationEr
 from maglog.sim.cli import main
 from maglog.sim.scenario import make_flight
 
+# The calib tests' one card-image builder (tests are no package: the folder goes on the path).
+sys.path.insert(0, str(Path(__file__).parent))
+from cards import card_image
+
 XHTML = "{http://www.w3.org/1999/xhtml}"
-FS_LBA = 2048
-FS_SECTORS = 131072                   # 64 MiB: a legal FAT32 with one-sector clusters
 
 
 def valid_html(path):
@@ -34,26 +36,6 @@ def strict_json(path):
     def refuse(name):
         raise ValueError(f"{path.name} holds {name}, which is not JSON")
     return json.loads(path.read_text(), parse_constant=refuse)
-
-
-def card_image(tools, path, files):
-    """A raw card image: an MBR with one FAT32 (LBA) partition at 1 MiB, formatted and
-    filled by mkfs.fat and mcopy."""
-    with open(path, "wb") as f:
-        f.truncate((FS_LBA + FS_SECTORS) * 512)
-        entry = struct.pack("<B3sB3sII", 0x00, b"\0\0\0", 0x0C, b"\0\0\0", FS_LBA, FS_SECTORS)
-        f.seek(0x1BE)
-        f.write(entry)
-        f.seek(0x1FE)
-        f.write(b"\x55\xAA")
-    subprocess.run([tools["mkfs.fat"], "-F", "32", "-s", "1", "--offset", str(FS_LBA),
-                    "-h", str(FS_LBA), str(path), str(FS_SECTORS // 2)],
-                   check=True, capture_output=True)
-    for name, data in files.items():
-        source = path.parent / name
-        source.write_bytes(data)
-        subprocess.run([tools["mcopy"], "-i", f"{path}@@{FS_LBA * 512}", str(source),
-                        f"::{name}"], check=True, capture_output=True)
 
 
 @pytest.mark.parametrize("ref", ["cesium", "igrf"])
@@ -228,7 +210,10 @@ def calibrate_log(tmp_path, log, *args, name="LOG00001.TXT"):
     path.write_bytes(log)
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        status = main(["calibrate", str(path), "--out", str(tmp_path / "report"), *args])
+        try:
+            status = main(["calibrate", str(path), "--out", str(tmp_path / "report"), *args])
+        except SystemExit as exit:          # a usage error, refused while parsing
+            status = exit.code
     return status, out.getvalue(), err.getvalue()
 
 
@@ -271,8 +256,9 @@ def test_bad_data_ends_in_one_line_saying_what_and_where(flight, tmp_path, case,
     ("1e308", "a reference field must be 1,000..1,000,000 nT"),
 ])
 def test_reference_values_out_of_range_are_refused(flight, tmp_path, ref, message):
+    # Refused while the arguments are parsed: a usage error, one line, before any reading.
     status, _, err = calibrate_log(tmp_path, flight.log(), "--ref", ref)
-    assert status == 1 and message in err
+    assert status == 2 and message in err and err.count("\n") == 1
 
 
 def test_check_reference_and_seed():
