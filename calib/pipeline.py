@@ -590,7 +590,44 @@ def _check_scale(name, b, r):
             "in nT, or not the same field")
 
 
-def _plots(run, out, staged):
+#: Units of the noise terms of a residual in nT sampled in seconds (sigma in nT).
+_NOISE_UNITS = {"quantisation": "nT s", "random_walk": "nT s^1/2", "bias_instability": "nT",
+                "rate_random_walk": "nT s^-1/2", "rate_ramp": "nT s^-1"}
+
+
+def _allan(run):
+    """The Allan analysis of the calibrated residual, or None when it is too short or its
+    times are not usable."""
+    if len(run.t) <= 20 or not np.all(np.isfinite(run.t)):
+        return None
+    step = float(np.median(np.diff(run.t)))
+    return allan_deviation(run.residual, 1.0 / step if step > 0 else 1.0)
+
+
+def _allan_lines(allan):
+    """The noise terms of the residual: each where its slope holds, or not resolved."""
+    lines = ["## Noise of the residual (Allan deviation)", "",
+             "Each term is fitted only over the τ range where the curve has its slope "
+             "(IEEE 952); where no such range exists it is not resolved.", "",
+             "| term | slope | value | 1 sigma | τ range (s) |", "|---|---:|---:|---:|---|"]
+    for name, term in allan.terms.items():
+        label = name.replace("_", " ")
+        if term.resolved:
+            low, high = term.tau_range
+            lines.append(f"| {label} | {term.slope:+g} | {term.value:.4g} "
+                         f"{_NOISE_UNITS[name]} | {term.error:.2g} | {low:.3g}–{high:.3g} |")
+        else:
+            lines.append(f"| {label} | {term.slope:+g} | not resolved | | |")
+    return lines + [""]
+
+
+def _allan_dict(allan):
+    return {name: {"resolved": term.resolved, "value": term.value, "error": term.error,
+                   "unit": _NOISE_UNITS[name], "tau_range_s": list(term.tau_range)}
+            for name, term in allan.terms.items()}
+
+
+def _plots(run, out, staged, allan):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -633,11 +670,11 @@ def _plots(run, out, staged):
     ax.set_xlabel("compensated |B| - reference (nT)")
     save(fig, "residuals", "Residuals")
 
-    if len(run.t) > 20 and np.all(np.isfinite(run.t)):
-        rate = 1.0 / float(np.median(np.diff(run.t))) if np.median(np.diff(run.t)) > 0 else 1.0
-        allan = allan_deviation(run.residual, rate)
+    if allan is not None:
         fig, ax = plt.subplots(figsize=(6, 3.5))
-        ax.loglog(allan.taus, allan.deviation)
+        ax.errorbar(allan.taus, allan.deviation, yerr=allan.error, lw=0.8, elinewidth=0.5)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
         ax.set_xlabel("tau (s)")
         ax.set_ylabel("Allan deviation (nT)")
         save(fig, "allan", "Allan deviation of the residual")
@@ -741,7 +778,7 @@ def _stage(staged, final):
     return staged[final]
 
 
-def _report_lines(run, summary, files):
+def _report_lines(run, summary, files, allan=None):
     lines = [f"# Calibration of {run.log_name}", "",
              f"- method: {run.method}; reference: {run.reference}; samples: {len(run.b)}",
              f"- total-field RMS against the reference: {summary['rms_before_nT']:.2f} nT "
@@ -777,6 +814,8 @@ def _report_lines(run, summary, files):
                   ""]
     if run.heading is not None:
         lines += _heading_lines(run.heading, run.t)
+    if allan is not None:
+        lines += _allan_lines(allan)
     report = run.parsed.report
     bad = ", ".join(f"{k} {v}" for k, v in report.bad.items() if v) or "none"
     lines += ["## Log", "", f"{report.lines} lines; bad lines by reason: {bad}.", ""]
@@ -802,10 +841,13 @@ def write_report(run, out_dir):
         with _warnings.catch_warnings(), np.errstate(all="ignore"):
             _warnings.simplefilter("ignore")
             summary = run.summary()
-            files = _plots(run, out, staged)
+            allan = _allan(run)
+            if allan is not None:
+                summary["allan"] = _allan_dict(allan)
+            files = _plots(run, out, staged, allan)
             _stage(staged, out / "parameters.json").write_text(
                 json.dumps(_jsonable(summary), indent=2, allow_nan=False) + "\n")
-            markdown_text = "\n".join(_report_lines(run, summary, files)) + "\n"
+            markdown_text = "\n".join(_report_lines(run, summary, files, allan)) + "\n"
             _stage(staged, out / "report.md").write_text(markdown_text, encoding="utf-8")
             _stage(staged, out / "report.html").write_text(
                 _html(markdown_text, f"Calibration of {run.log_name}"), encoding="utf-8")

@@ -57,6 +57,18 @@ def test_calibrate_a_card_image(fat_tools, tmp_path, ref, capsys):
     for name in ("report.md", "report.html", "figure7.png", "coverage.png", "residuals.png",
                  "allan.png"):
         assert (out / name).stat().st_size > 0
+    # The residual of a synthetic flight is white noise: the Allan analysis resolves the
+    # random-walk term (slope -1/2) and no bias-instability floor, and the report says so.
+    allan = summary["allan"]
+    # White noise of RMS s sampled every t0 has N = s sqrt(t0) (make_flight's 20 Hz).
+    white = summary["rms_after_nT"] * np.sqrt(1 / 20.0)
+    assert allan["random_walk"]["resolved"]
+    assert abs(allan["random_walk"]["value"] - white) < 0.15 * white
+    assert not allan["bias_instability"]["resolved"]
+    assert allan["bias_instability"]["value"] is None            # strict JSON: no NaN
+    text = (out / "report.md").read_text()
+    assert "## Noise of the residual (Allan deviation)" in text
+    assert "| bias instability | +0 | not resolved |" in text
 
 
 def test_errors_are_clear(fat_tools, tmp_path, capsys):
@@ -102,8 +114,10 @@ def test_heading_alignment_and_error_against_the_attitude(survey, tmp_path, caps
     report = (out / "report.md").read_text()
     assert "## Heading" in report and "heading - course" in report
     page = valid_html(out / "report.html")
-    assert {"Parameters", "Heading", "Log", "Plots"} <= {h.text for h in page.iter(f"{XHTML}h2")}
-    assert len(list(page.iter(f"{XHTML}table"))) == 2
+    assert {"Parameters", "Heading", "Noise of the residual (Allan deviation)", "Log",
+            "Plots"} <= {h.text for h in page.iter(f"{XHTML}h2")}
+    # Parameters, heading legs, noise terms.
+    assert len(list(page.iter(f"{XHTML}table"))) == 3
     assert "heading_error.png" in [img.get("src") for img in page.iter(f"{XHTML}img")]
     assert len(list(page.iter(f"{XHTML}pre"))) == 1
     # Without the attitude the same log is aligned from level-flight headings alone.
