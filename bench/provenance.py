@@ -419,6 +419,77 @@ def calib_heading(report):
     return table(["mounting yaw", "legs", "true offset", "found"], rows, "rrrr")
 
 
+def calib_lm(report):
+    rows = []
+    for r in report["rows"]:
+        polish = {"hand": "hand-written LM (removed)", "lm": "`least_squares` lm",
+                  "trf": "`least_squares` trf"}[r["polish"]]
+        if r["solver_used"] != r["polish"]:
+            polish += f" (ran {r['solver_used']})"
+        rows.append([r["coverage"], r["start"], polish,
+                     f"{r['seconds_best'] * 1e3:.2f}", f"{r['seconds_median'] * 1e3:.2f}",
+                     f"{r['rms_nT']:.4f}", r["steps"], r["stop"],
+                     f"{r['max_abs_dK_vs_lm']:.1e} / {r['max_abs_dc_vs_lm_nT']:.1e}"])
+    samples = sorted({r["samples"] for r in report["rows"]})
+    return table(["flight", "start", "polish", "best ms", "median ms", "RMS (nT)", "steps",
+                  "stop", "max \\|ΔK\\| / \\|Δc\\| (nT) vs lm"], rows, "lllrrrrll") + [
+        "", f"{', '.join(map(str, samples))} samples; best and median of {report['repeat']} "
+            f"repeats; steps: {report['steps_mean']}."]
+
+
+def calib_mutation(report):
+    outcomes = list(report["counts"])
+    rows = [[name] + [counts[o] for o in outcomes] for name, counts in
+            sorted(report["by_class"].items())]
+    rows.append(["**all**"] + [f"**{report['counts'][o]}**" for o in outcomes])
+    return table(["class"] + outcomes, rows, "l" + "r" * len(outcomes)) + [
+        "", f"{report['inputs']:,} inputs (seed {report['seed']}, card images "
+            f"{'built' if report['images'] else 'not built: no FAT tools'}, "
+            f"at most {report['time_limit_s']} s an input) in {report['seconds']:.0f} s: "
+            f"{report['failures_total']} tracebacks, hangs or nonsense results."]
+
+
+def _allan_cell(entry):
+    if entry.get("before") is None and entry.get("after") is None:
+        return "not resolved"
+    def one(value, span):
+        if value is None:
+            return "not resolved"
+        return f"{value:.4g}" + (f" [{span[0]:.3g}–{span[1]:.3g} s]" if span else "")
+    cell = (f"{one(entry['before'], entry.get('before_tau_range_s'))} → "
+            f"{one(entry['after'], entry.get('after_tau_range_s'))}")
+    if entry.get("reduction_percent") is not None:
+        cell += f" ({entry['reduction_percent']:+.1f} %"
+        seeds = entry.get("reduction_percent_over_seeds") or {}
+        if seeds.get("mean") is not None:
+            cell += (f"; {seeds['mean']:+.1f} ± {seeds['std']:.1f} % over "
+                     f"{seeds['resolved_in']} of {seeds['of']} seeds")
+        cell += ")"
+    return cell
+
+
+def allan_paper_c(report):
+    methods = [("slope_regions", "slope regions"),
+               ("slope_regions_beyond_10_time_constants", "slope regions, τ ≥ 10 T"),
+               ("sum_model", "sum model"), ("single_point", "single-point read (old)")]
+    rows = []
+    for scenario, terms in report["comparison"].items():
+        for term, entry in terms.items():
+            paper = entry["paper"]
+            rows.append([scenario.replace("_", " "), term.replace("_", " "),
+                         f"{entry['truth']:.4g}",
+                         f"{paper['before']:.4g} → {paper['after']:.4g} "
+                         f"({paper['reduction_percent']:+.1f} %)"]
+                        + [_allan_cell(entry[key]) for key, _ in methods])
+    f = report["filter"]
+    return table(["signal", "term", "truth", "paper C (before → after)"]
+                 + [label for _, label in methods], rows, "llrl" + "l" * len(methods)) + [
+        "", f"{report['samples']:,} samples at {report['rate_hz']:g} Hz, {report['seeds']} "
+            f"seeds (the table's values are the first seed's). Kalman filter: {f['ours']}; "
+            f"steady-state gain {f['steady_state_gain']:.4f}, time constant T = "
+            f"{f['time_constant_s']:.2f} s."]
+
+
 # --- machines ---------------------------------------------------------------------------
 
 def machine(report):
@@ -444,6 +515,9 @@ BLOCKS = {
     "calib-pso": ("bench/results/calib.json", calib_pso),
     "calib-ellipsoid": ("bench/results/calib.json", calib_ellipsoid),
     "calib-heading": ("bench/results/calib.json", calib_heading),
+    "calib-lm": ("bench/results/calib_lm.json", calib_lm),
+    "calib-mutation": ("bench/results/calib_mutation.json", calib_mutation),
+    "allan-paper-c": ("bench/results/allan_paper_c.json", allan_paper_c),
 }
 
 
