@@ -221,7 +221,8 @@ def write_report(path, benchmark, argv, load_start, tools, **fields):
 def provenance_line(report, source=None):
     """The one-line provenance of a benchmark report (a dict read from its JSON):
 
-    ``Provenance (<source>): commit abc1234, clean | N uncommitted paths, source sha256
+    ``Provenance (<source>): commit abc1234, clean | N uncommitted source paths [and M
+    result files] | clean but for M result files (bench/results/), source sha256
     0123456789ab; 2026-11-24T01:30:00+00:00; load 0.42→1.10; `command` ``
 
     Everything in it comes from the JSON; bench/RESULTS.md carries it under each table."""
@@ -233,7 +234,18 @@ def provenance_line(report, source=None):
     elif not status:
         state = "clean"
     else:
-        state = f"{len(status)} uncommitted path{'s' if len(status) != 1 else ''}"
+        # Paths under OUTPUTS are earlier benchmarks' results, outside the source hash.
+        source_paths = [line for line in status
+                        if not any(line[3:].startswith(out) for out in OUTPUTS)]
+        outputs = len(status) - len(source_paths)
+        if source_paths:
+            state = (f"{len(source_paths)} uncommitted source "
+                     f"path{'s' if len(source_paths) != 1 else ''}")
+            if outputs:
+                state += f" and {outputs} result file{'s' if outputs != 1 else ''}"
+        else:
+            state = (f"clean but for {outputs} result file{'s' if outputs != 1 else ''} "
+                     f"({', '.join(OUTPUTS)})")
     digest = tree.get("source_sha256")
     source_hash = f"source sha256 {digest[:12]}" if digest else "no source hash"
     end = tree.get("end") or {}

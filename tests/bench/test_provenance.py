@@ -124,12 +124,21 @@ def test_provenance_line_says_what_the_json_holds():
                       "source_sha256": "ab" * 32,
                       "end": {"commit": "fedcba98" * 5, "changed_during_run": ["a.py"]}}}
     line = machine.provenance_line(report, "bench/results/x.json")
-    assert line == ("Provenance (bench/results/x.json): commit `0123456`, 2 uncommitted paths, "
+    assert line == ("Provenance (bench/results/x.json): commit `0123456`, 2 uncommitted source "
+                    "paths, "
                     "source sha256 abababababab (1 path changed during the run; HEAD moved "
                     "to `fedcba9` during the run); 2026-11-24T01:00:00+00:00; load 0.50→1.25; "
                     "`.venv/bin/python bench/x.py`")
     report["work_tree"].update(status_porcelain=[], end={})
     assert "commit `0123456`, clean, source sha256" in machine.provenance_line(report)
+    # Earlier benchmarks' results are outside the source hash, and said apart.
+    report["work_tree"].update(status_porcelain=[" M bench/results/a.json",
+                                                 "?? bench/results/b.json"])
+    assert ("commit `0123456`, clean but for 2 result files (bench/results/), source sha256"
+            in machine.provenance_line(report))
+    report["work_tree"]["status_porcelain"].append(" M hw/uart.py")
+    assert ("commit `0123456`, 1 uncommitted source path and 2 result files, source sha256"
+            in machine.provenance_line(report))
 
 
 def test_the_source_hash_covers_tracked_and_untracked_files(tmp_path, monkeypatch):
