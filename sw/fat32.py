@@ -1,0 +1,795 @@
+"""FAT32 writer for the logger: a host-side formatter, and a mount / create / append / sync
+driver over any 512-byte block device.
+
+Written from the FAT specification and the SD Association's file system specification (see
+:mod:`maglog.hw.arch.fat32`), independently of :mod:`maglog.calib.card`, which reads what
+this module writes.
+
+Decisions beyond the specification's letter:
+
+* New directory entries always go after the last used entry of the root directory (at its
+  end marker); deleted (0xE5) slots are never reused, so no long-file-name chain can be
+  broken. A full directory grows by one zeroed cluster.
+* FSInfo is trusted when it is plausible (free count at most the cluster count, hint inside
+  the data clusters). An unknown or implausible free count is recounted from the FAT and an
+  implausible hint is replaced by cluster 2, each with a line in :attr:`Volume.notes`. An
+  FSInfo sector with bad signatures is noted, the free count recounted, and the sector is
+  never written: what was not understood is not overwritten.
+* A volume whose clean-shutdown bit is clear mounts (with a note): the power-loss rule
+  leaves at most lost clusters behind, and the logger must keep recording.
+* Only the primary FSInfo is kept up to date; the backup (sector 7) is the format-time copy.
+* Sync writes data sectors, then the changed FAT sectors (all of FAT 1, then FAT 2), then the
+  directory entry, then FSInfo: a cut at any point leaves at worst lost clusters.
+"""
+
+import abc
+import datetime as _dt
+import os
+import re
+
+from ..hw.arch import fat32 as arch
+
+
+__all__ = ["FatError", "FatFullError", "BlockDevice", "ImageFile", "FormatPlan", "plan_format",
+           "format_image", "Volume", "LogFile"]
+
+SECTOR = arch.SECTOR_BYTES
+_LOG_NAME = re.compile(rb"LOG(\d{5})TXT")
+LOG_MAX_NUMBER = 99999
+
+
+class FatError(Exception):
+    """The card is not a sane FAT32 volume, or an operation on it failed."""
+
+
+class FatFullError(FatError):
+    """No free cluster (or directory entry) is left; ``written`` bytes were taken first."""
+
+    def __init__(self, message, written=0):
+        super().__init__(message)
+        self.written = written
+
+
+# -- Block devices ---------------------------------------------------------------------------
+
+class BlockDevice(abc.ABC):
+    """512-byte blocks addressed by LBA, as an SDHC card is."""
+
+    @abc.abstractmethod
+    async def read_block(self, lba):
+        """The 512 bytes of block ``lba``."""
+
+    @abc.abstractmethod
+    async def write_block(self, lba, data):
+        """Store 512 bytes at block ``lba``."""
+
+
+class ImageFile(BlockDevice):
+    """A raw card image on the host as a block device (for the formatter's tests and the
+    CLI). Blocks beyond the end of the file read as zeros."""
+
+    def __init__(self, path):
+        self.path = os.fspath(path)
+        self._file = open(self.path, "r+b")
+
+    def close(self):
+        self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    @property
+    def blocks(self):
+        return os.fstat(self._file.fileno()).st_size // SECTOR
+
+    async def read_block(self, lba):
+        self._file.seek(lba * SECTOR)
+        return self._file.read(SECTOR).ljust(SECTOR, b"\0")
+
+    async def write_block(self, lba, data):
+        if len(data) != SECTOR:
+            raise ValueError(f"A block is {SECTOR} bytes, not {len(data)}")
+        self._file.seek(lba * SECTOR)
+        self._file.write(data)
+
+
+# -- Little helpers --------------------------------------------------------------------------
+
+def _u16(buf, offset):
+    return int.from_bytes(buf[offset:offset + 2], "little")
+
+
+def _u32(buf, offset):
+    return int.from_bytes(buf[offset:offset + 4], "little")
+
+
+def _put16(buf, offset, value):
+    buf[offset:offset + 2] = value.to_bytes(2, "little")
+
+
+def _put32(buf, offset, value):
+    buf[offset:offset + 4] = value.to_bytes(4, "little")
+
+
+def _ceil_div(a, b):
+    return -(-a // b)
+
+
+def _round_up(value, unit):
+    return _ceil_div(value, unit) * unit
+
+
+def fat_date_time(timestamp):
+    """``(date, time)`` FAT fields of a :class:`datetime.datetime` or of a ``(date, time)``
+    pair of :class:`datetime.date` and :class:`datetime.time`."""
+    if isinstance(timestamp, _dt.datetime):
+        date, time = timestamp.date(), timestamp.time()
+    else:
+        date, time = timestamp
+    if not arch.FAT_EPOCH_YEAR <= date.year <= arch.FAT_LAST_YEAR:
+        raise FatError(f"Year {date.year} cannot be stored in a FAT date "
+                       f"({arch.FAT_EPOCH_YEAR}..{arch.FAT_LAST_YEAR})")
+    fat_date = ((date.year - arch.FAT_EPOCH_YEAR) << 9) | (date.month << 5) | date.day
+    fat_time = (time.hour << 11) | (time.minute << 5) | (time.second // 2)
+    return fat_date, fat_time
+
+
+FAT_EPOCH = _dt.datetime(arch.FAT_EPOCH_YEAR, 1, 1)
+
+
+# -- Formatter -------------------------------------------------------------------------------
+
+class FormatPlan:
+    """Where everything goes on a card of ``total_sectors``: partition, reserved region,
+    FATs, data region (all in sectors)."""
+
+    def __init__(self, total_sectors, sectors_per_cluster, boundary):
+        self.total_sectors = total_sectors
+        self.sectors_per_cluster = sectors_per_cluster
+        self.boundary = boundary
+        self.partition_start = boundary
+        self.partition_sectors = total_sectors - boundary
+        self.fat_sectors, self.reserved_sectors = self._layout()
+        data_sectors = self.partition_sectors - self.data_offset
+        self.cluster_count = data_sectors // sectors_per_cluster
+
+    @property
+    def data_offset(self):
+        """First data sector, counted from the partition start."""
+        return self.reserved_sectors + arch.NUM_FATS * self.fat_sectors
+
+    def _layout(self):
+        # SDFS's FAT32 layout puts the first data sector on a boundary unit; the reserved
+        # region absorbs the difference. The FAT size depends on the cluster count and that
+        # on the FAT size, so iterate until the FAT is just large enough.
+        fat_sectors = 1
+        while True:
+            reserved = self._reserved_for(fat_sectors)
+            data = self.partition_sectors - reserved - arch.NUM_FATS * fat_sectors
+            clusters = max(data // self.sectors_per_cluster, 0)
+            needed = _ceil_div((clusters + arch.FIRST_DATA_CLUSTER) * arch.FAT_ENTRY_BYTES,
+                               SECTOR)
+            if needed <= fat_sectors:
+                return fat_sectors, reserved
+            fat_sectors = needed
+
+    def _reserved_for(self, fat_sectors):
+        fats_end = (self.partition_start + arch.MIN_RESERVED_SECTORS
+                    + arch.NUM_FATS * fat_sectors)
+        data_start = _round_up(fats_end, self.boundary)
+        return data_start - self.partition_start - arch.NUM_FATS * fat_sectors
+
+
+def plan_format(size_bytes, cluster_bytes=None):
+    """The :class:`FormatPlan` for a card of ``size_bytes``: the SDA parameters for an SDHC
+    capacity, or FAT32 with an explicit ``cluster_bytes`` when that gives a legal FAT32."""
+    if size_bytes <= 0 or size_bytes % SECTOR:
+        raise FatError(f"Card size must be a positive multiple of {SECTOR} bytes, "
+                       f"not {size_bytes!r}")
+    sdhc = arch.SDHC_MIN_BYTES <= size_bytes <= arch.SDHC_MAX_BYTES
+    if cluster_bytes is None:
+        if not sdhc:
+            raise FatError(
+                f"A card of {size_bytes} bytes is not SDHC (above 2 GiB up to 32 GiB): the "
+                f"SD Association formats it as FAT12/16 or exFAT; give cluster_bytes to "
+                f"format it as FAT32 anyway")
+        cluster_bytes = arch.SDHC_SECTORS_PER_CLUSTER * SECTOR
+    sectors_per_cluster, rest = divmod(cluster_bytes, SECTOR)
+    if (rest or not 1 <= sectors_per_cluster <= arch.MAX_SECTORS_PER_CLUSTER
+            or sectors_per_cluster & (sectors_per_cluster - 1)
+            or cluster_bytes > arch.MAX_CLUSTER_BYTES):
+        raise FatError(f"Cluster size must be a power of two from {SECTOR} to "
+                       f"{arch.MAX_CLUSTER_BYTES} bytes, not {cluster_bytes!r}")
+    total = size_bytes // SECTOR
+    if total <= 2 * arch.SDHC_BOUNDARY_SECTORS:
+        raise FatError(f"A card of {size_bytes} bytes is too small for FAT32")
+    plan = FormatPlan(total, sectors_per_cluster, arch.SDHC_BOUNDARY_SECTORS)
+    if not arch.FAT32_MIN_CLUSTERS <= plan.cluster_count <= arch.FAT32_MAX_CLUSTER - 1:
+        raise FatError(f"{size_bytes} bytes with {cluster_bytes}-byte clusters gives "
+                       f"{plan.cluster_count} clusters; FAT32 needs at least "
+                       f"{arch.FAT32_MIN_CLUSTERS}")
+    return plan
+
+
+def _chs(lba):
+    cylinder, rest = divmod(lba, arch.CHS_HEADS * arch.CHS_SECTORS)
+    head, sector = divmod(rest, arch.CHS_SECTORS)
+    if cylinder > arch.CHS_MAX_CYLINDER:
+        cylinder, head, sector = arch.CHS_MAX_CYLINDER, arch.CHS_HEADS - 1, arch.CHS_SECTORS - 1
+    return bytes([head, ((cylinder >> 2) & 0xC0) | (sector + 1), cylinder & 0xFF])
+
+
+def _mbr(plan, disk_id):
+    mbr = bytearray(SECTOR)
+    _put32(mbr, arch.MBR_DISK_ID, disk_id)
+    entry = arch.MBR_PARTITION_TABLE
+    mbr[entry + arch.PART_STATUS] = 0x00
+    mbr[entry + arch.PART_CHS_FIRST:entry + arch.PART_CHS_FIRST + 3] = _chs(plan.partition_start)
+    mbr[entry + arch.PART_TYPE] = arch.PartitionType.FAT32_LBA
+    last = plan.partition_start + plan.partition_sectors - 1
+    mbr[entry + arch.PART_CHS_LAST:entry + arch.PART_CHS_LAST + 3] = _chs(last)
+    _put32(mbr, entry + arch.PART_LBA_FIRST, plan.partition_start)
+    _put32(mbr, entry + arch.PART_SECTORS, plan.partition_sectors)
+    mbr[arch.BOOT_SIGNATURE_OFFSET:] = arch.BOOT_SIGNATURE
+    return bytes(mbr)
+
+
+def _label_bytes(label):
+    if label is None:
+        return arch.NO_NAME_LABEL
+    raw = label.upper().encode("ascii")
+    if not raw or len(raw) > arch.DIR_NAME_BYTES or any(c in b'*?.,;:/\\|+=<>[]"' or c < 0x20
+                                                         for c in raw):
+        raise FatError(f"Volume label must be 1..11 plain characters, not {label!r}")
+    return raw.ljust(arch.DIR_NAME_BYTES)
+
+
+def _boot_sector(plan, label, volume_id):
+    bs = bytearray(SECTOR)
+    bs[0:3] = bytes([arch.JMP_SHORT, 0x58, arch.NOP])
+    bs[arch.BS_OEM_NAME:arch.BS_OEM_NAME + 8] = b"MAGLOG  "
+    _put16(bs, arch.BPB_BYTS_PER_SEC, SECTOR)
+    bs[arch.BPB_SEC_PER_CLUS] = plan.sectors_per_cluster
+    _put16(bs, arch.BPB_RSVD_SEC_CNT, plan.reserved_sectors)
+    bs[arch.BPB_NUM_FATS] = arch.NUM_FATS
+    bs[arch.BPB_MEDIA] = arch.MEDIA_FIXED
+    _put16(bs, arch.BPB_SEC_PER_TRK, arch.CHS_SECTORS)
+    _put16(bs, arch.BPB_NUM_HEADS, arch.CHS_HEADS)
+    _put32(bs, arch.BPB_HIDD_SEC, plan.partition_start)
+    _put32(bs, arch.BPB_TOT_SEC32, plan.partition_sectors)
+    _put32(bs, arch.BPB_FAT_SZ32, plan.fat_sectors)
+    _put32(bs, arch.BPB_ROOT_CLUS, arch.ROOT_CLUSTER)
+    _put16(bs, arch.BPB_FS_INFO, arch.FSINFO_SECTOR)
+    _put16(bs, arch.BPB_BK_BOOT_SEC, arch.BACKUP_BOOT_SECTOR)
+    bs[arch.BS_DRV_NUM] = arch.DRIVE_NUMBER_HARD_DISK
+    bs[arch.BS_BOOT_SIG] = arch.EXTENDED_BOOT_SIGNATURE
+    _put32(bs, arch.BS_VOL_ID, volume_id)
+    bs[arch.BS_VOL_LAB:arch.BS_VOL_LAB + 11] = label
+    bs[arch.BS_FIL_SYS_TYPE:arch.BS_FIL_SYS_TYPE + 8] = arch.FIL_SYS_TYPE_FAT32
+    bs[arch.BOOT_SIGNATURE_OFFSET:] = arch.BOOT_SIGNATURE
+    return bytes(bs)
+
+
+def _fsinfo_sector(free_count, next_free):
+    fsi = bytearray(SECTOR)
+    _put32(fsi, arch.FSI_LEAD_SIG_OFFSET, arch.FSI_LEAD_SIG)
+    _put32(fsi, arch.FSI_STRUC_SIG_OFFSET, arch.FSI_STRUC_SIG)
+    _put32(fsi, arch.FSI_FREE_COUNT, free_count)
+    _put32(fsi, arch.FSI_NXT_FREE, next_free)
+    _put32(fsi, arch.FSI_TRAIL_SIG_OFFSET, arch.FSI_TRAIL_SIG)
+    return bytes(fsi)
+
+
+def _first_fat_sector(media):
+    fat = bytearray(SECTOR)
+    _put32(fat, 0, arch.FAT0_HIGH | media)
+    _put32(fat, 4, arch.FAT_EOC)        # clean-shutdown and no-hard-error bits set
+    _put32(fat, arch.ROOT_CLUSTER * arch.FAT_ENTRY_BYTES, arch.FAT_EOC)
+    return bytes(fat)
+
+
+def _root_cluster(plan, label):
+    root = bytearray(plan.sectors_per_cluster * SECTOR)
+    if label != arch.NO_NAME_LABEL:
+        root[arch.DIR_NAME:arch.DIR_NAME + 11] = label
+        root[arch.DIR_ATTR] = arch.Attr.VOLUME_ID
+    return bytes(root)
+
+
+def format_image(path, size_bytes, *, cluster_bytes=None, label="MAGLOG", volume_id=None):
+    """Write a blank, sparse card image of ``size_bytes`` at ``path``: an MBR with one FAT32
+    partition (type 0x0C) laid out as the SD Association formats cards, boot sector and
+    FSInfo with their backups, two FATs and an empty root directory. Returns the
+    :class:`FormatPlan`. ``label=None`` leaves the volume unlabelled ("NO NAME")."""
+    plan = plan_format(size_bytes, cluster_bytes)
+    label = _label_bytes(label)
+    volume_id = (int.from_bytes(os.urandom(4), "little") if volume_id is None
+                 else volume_id & 0xFFFFFFFF)
+    boot = _boot_sector(plan, label, volume_id)
+    fsinfo = _fsinfo_sector(plan.cluster_count - 1, arch.ROOT_CLUSTER + 1)
+    part = plan.partition_start
+    writes = [(0, _mbr(plan, volume_id)),
+              (part, boot), (part + arch.FSINFO_SECTOR, fsinfo),
+              (part + arch.BACKUP_BOOT_SECTOR, boot),
+              (part + arch.BACKUP_FSINFO_SECTOR, fsinfo)]
+    for fat in range(arch.NUM_FATS):
+        fat_start = part + plan.reserved_sectors + fat * plan.fat_sectors
+        writes.append((fat_start, _first_fat_sector(arch.MEDIA_FIXED)))
+    writes.append((part + plan.data_offset, _root_cluster(plan, label)))
+    with open(path, "wb") as f:
+        f.truncate(size_bytes)
+        for lba, data in writes:
+            f.seek(lba * SECTOR)
+            f.write(data)
+    return plan
+
+
+# -- Mount -----------------------------------------------------------------------------------
+
+class _Layout:
+    """The geometry a mounted volume's BPB gives, in absolute sectors."""
+
+    def __init__(self, partition_start, bs):
+        self.partition_start = partition_start
+        self.sectors_per_cluster = bs[arch.BPB_SEC_PER_CLUS]
+        self.reserved_sectors = _u16(bs, arch.BPB_RSVD_SEC_CNT)
+        self.num_fats = bs[arch.BPB_NUM_FATS]
+        self.total_sectors = _u32(bs, arch.BPB_TOT_SEC32)
+        self.fat_sectors = _u32(bs, arch.BPB_FAT_SZ32)
+        self.root_cluster = _u32(bs, arch.BPB_ROOT_CLUS)
+        self.fsinfo_sector = _u16(bs, arch.BPB_FS_INFO)
+        self.backup_boot_sector = _u16(bs, arch.BPB_BK_BOOT_SEC)
+        self.fat_start = partition_start + self.reserved_sectors
+        data_offset = self.reserved_sectors + self.num_fats * self.fat_sectors
+        self.data_start = partition_start + data_offset
+        self.cluster_count = max(self.total_sectors - data_offset, 0) // max(
+            self.sectors_per_cluster, 1)
+        self.max_cluster = self.cluster_count + 1
+
+    @property
+    def cluster_bytes(self):
+        return self.sectors_per_cluster * SECTOR
+
+    def cluster_lba(self, cluster):
+        return self.data_start + (cluster - arch.FIRST_DATA_CLUSTER) * self.sectors_per_cluster
+
+
+def _find_partition(mbr):
+    """``(index, type, first LBA, sectors)`` of the first used MBR entry."""
+    if mbr[arch.BOOT_SIGNATURE_OFFSET:] != arch.BOOT_SIGNATURE:
+        raise FatError(f"sector 0: no MBR: bytes 510-511 are {mbr[510:512].hex()}, not 55aa")
+    if mbr[arch.BS_OEM_NAME:arch.BS_OEM_NAME + 8] == arch.EXFAT_OEM_NAME:
+        raise FatError("sector 0: an exFAT boot sector without a partition table; "
+                       "exFAT is not supported, only FAT32 in an MBR partition")
+    for index in range(arch.MBR_PARTITIONS):
+        entry = arch.MBR_PARTITION_TABLE + index * arch.MBR_PARTITION_ENTRY_BYTES
+        kind = mbr[entry + arch.PART_TYPE]
+        if kind == arch.PartitionType.EMPTY:
+            continue
+        status = mbr[entry + arch.PART_STATUS]
+        if status not in (0x00, 0x80):
+            raise FatError(f"sector 0: no MBR: partition entry {index + 1} has status "
+                           f"0x{status:02x} (a boot sector without a partition table?)")
+        return (index, kind, _u32(mbr, entry + arch.PART_LBA_FIRST),
+                _u32(mbr, entry + arch.PART_SECTORS))
+    raise FatError("sector 0: the MBR has no partition")
+
+
+def _check_partition_type(index, kind, boot):
+    where = f"partition {index + 1}"
+    if boot[arch.BS_OEM_NAME:arch.BS_OEM_NAME + 8] == arch.EXFAT_OEM_NAME:
+        raise FatError(f"{where}: the boot sector is exFAT (OEM name 'EXFAT'); "
+                       f"only FAT32 is supported")
+    if kind not in arch.FAT32_PARTITION_TYPES:
+        name = (arch.PartitionType(kind).name if kind in arch.PartitionType._value2member_map_
+                else "unknown")
+        raise FatError(f"{where}: type 0x{kind:02x} ({name}) is not FAT32 (0x0b or 0x0c)")
+
+
+def _check_bpb(where, bs, partition_sectors):
+    """Raise :class:`FatError` unless ``bs`` is a sane FAT32 boot sector."""
+    def bad(what):
+        raise FatError(f"{where}: {what}")
+
+    if bs[arch.BOOT_SIGNATURE_OFFSET:] != arch.BOOT_SIGNATURE:
+        bad(f"boot sector signature is {bs[510:512].hex()}, not 55aa")
+    if not (bs[0] == arch.JMP_SHORT and bs[2] == arch.NOP or bs[0] == arch.JMP_NEAR):
+        bad(f"no boot sector: jump instruction is {bs[0:3].hex()}")
+    if _u16(bs, arch.BPB_BYTS_PER_SEC) != SECTOR:
+        bad(f"BPB_BytsPerSec is {_u16(bs, arch.BPB_BYTS_PER_SEC)}, only {SECTOR} is supported")
+    spc = bs[arch.BPB_SEC_PER_CLUS]
+    if spc == 0 or spc & (spc - 1):
+        bad(f"BPB_SecPerClus is {spc}, not a power of two")
+    if _u16(bs, arch.BPB_ROOT_ENT_CNT) or _u16(bs, arch.BPB_FAT_SZ16):
+        bad(f"FAT12/FAT16, not FAT32: BPB_RootEntCnt is {_u16(bs, arch.BPB_ROOT_ENT_CNT)} "
+            f"and BPB_FATSz16 is {_u16(bs, arch.BPB_FAT_SZ16)}")
+    if _u16(bs, arch.BPB_TOT_SEC16):
+        bad(f"BPB_TotSec16 is {_u16(bs, arch.BPB_TOT_SEC16)}, not 0 as on FAT32")
+    if bs[arch.BPB_NUM_FATS] not in (1, 2):
+        bad(f"BPB_NumFATs is {bs[arch.BPB_NUM_FATS]}, not 1 or 2")
+    if bs[arch.BPB_MEDIA] not in arch.MEDIA_VALUES:
+        bad(f"BPB_Media is 0x{bs[arch.BPB_MEDIA]:02x}, not a media descriptor")
+    if _u16(bs, arch.BPB_FS_VER):
+        bad(f"BPB_FSVer is 0x{_u16(bs, arch.BPB_FS_VER):04x}, only version 0:0 is known")
+    if _u16(bs, arch.BPB_EXT_FLAGS) & arch.EXT_FLAGS_NO_MIRROR:
+        bad("BPB_ExtFlags turns FAT mirroring off; only mirrored FATs are supported")
+    layout = _Layout(0, bs)
+    if not 0 < layout.total_sectors <= partition_sectors:
+        bad(f"BPB_TotSec32 is {layout.total_sectors}, outside the partition's "
+            f"{partition_sectors} sectors")
+    reserved = layout.reserved_sectors
+    for field, value in (("BPB_FSInfo", layout.fsinfo_sector),
+                         ("BPB_BkBootSec", layout.backup_boot_sector)):
+        if not 0 < value < reserved:
+            bad(f"{field} is {value}, outside the {reserved} reserved sectors")
+    if layout.cluster_count < arch.FAT32_MIN_CLUSTERS:
+        bad(f"{layout.cluster_count} clusters is FAT12/FAT16, not FAT32 (which needs at "
+            f"least {arch.FAT32_MIN_CLUSTERS})")
+    needed = _ceil_div((layout.max_cluster + 1) * arch.FAT_ENTRY_BYTES, SECTOR)
+    if layout.fat_sectors < needed:
+        bad(f"BPB_FATSz32 is {layout.fat_sectors} sectors, the {layout.cluster_count} "
+            f"clusters need {needed}")
+    if not arch.FIRST_DATA_CLUSTER <= layout.root_cluster <= layout.max_cluster:
+        bad(f"BPB_RootClus is {layout.root_cluster}, outside clusters 2..{layout.max_cluster}")
+
+
+class Volume:
+    """A mounted FAT32 volume on a :class:`BlockDevice`; use :meth:`mount`."""
+
+    def __init__(self, device, layout, notes):
+        self.device = device
+        self.layout = layout
+        #: What mount found odd but not fatal (dirty bit, implausible FSInfo, ...).
+        self.notes = notes
+        self.free_count = None
+        self.next_free = None
+        self.fsinfo_valid = False
+        self._fsinfo = None
+        self._fat = {}                  # FAT sector index -> bytearray (FAT 1's view)
+        self._fat_dirty = set()
+        self._dirty_marked = False
+        self._files = []
+
+    # -- mounting ---------------------------------------------------------------------------
+
+    @classmethod
+    async def mount(cls, device):
+        """Find the FAT32 partition, check it, and return the mounted :class:`Volume`.
+        Raises :class:`FatError` naming the problem when the card is not a sane FAT32."""
+        mbr = await device.read_block(0)
+        index, kind, start, sectors = _find_partition(mbr)
+        where = f"partition {index + 1} (sector {start})"
+        if start == 0 or sectors == 0:
+            raise FatError(f"{where}: starts at sector {start} with {sectors} sectors")
+        boot = await device.read_block(start)
+        _check_partition_type(index, kind, boot)
+        _check_bpb(f"{where} boot sector", boot, sectors)
+        volume = cls(device, _Layout(start, boot), [])
+        await volume._check_backup_boot(boot)
+        await volume._read_fsinfo()
+        await volume._check_fat_head()
+        return volume
+
+    async def _check_backup_boot(self, boot):
+        lba = self.layout.partition_start + self.layout.backup_boot_sector
+        if await self.device.read_block(lba) != boot:
+            self.notes.append(f"the backup boot sector (sector {lba}) differs from the "
+                              f"boot sector")
+
+    async def _read_fsinfo(self):
+        lba = self.layout.partition_start + self.layout.fsinfo_sector
+        fsi = await self.device.read_block(lba)
+        signatures = (_u32(fsi, arch.FSI_LEAD_SIG_OFFSET) == arch.FSI_LEAD_SIG
+                      and _u32(fsi, arch.FSI_STRUC_SIG_OFFSET) == arch.FSI_STRUC_SIG
+                      and _u32(fsi, arch.FSI_TRAIL_SIG_OFFSET) == arch.FSI_TRAIL_SIG)
+        if not signatures:
+            self.notes.append(f"FSInfo (sector {lba}) has bad signatures: ignored and "
+                              f"never written; free clusters counted from the FAT")
+            self.free_count = await self._count_free()
+            self.next_free = arch.FIRST_DATA_CLUSTER
+            return
+        self.fsinfo_valid = True
+        self._fsinfo = bytearray(fsi)
+        free, hint = _u32(fsi, arch.FSI_FREE_COUNT), _u32(fsi, arch.FSI_NXT_FREE)
+        if free > self.layout.cluster_count:
+            if free != arch.FSI_UNKNOWN:
+                self.notes.append(f"FSInfo free count {free} exceeds the "
+                                  f"{self.layout.cluster_count} clusters: recounted")
+            free = await self._count_free()
+        if not arch.FIRST_DATA_CLUSTER <= hint <= self.layout.max_cluster:
+            if hint != arch.FSI_UNKNOWN:
+                self.notes.append(f"FSInfo next-free hint {hint} is outside clusters "
+                                  f"2..{self.layout.max_cluster}: ignored")
+            hint = arch.FIRST_DATA_CLUSTER
+        self.free_count, self.next_free = free, hint
+
+    async def _check_fat_head(self):
+        fat1 = await self._fat_entry(1)
+        if not fat1 & arch.CLEAN_SHUTDOWN_BIT:
+            self.notes.append("the volume is dirty (clean-shutdown bit of FAT[1] clear): it "
+                              "was not closed cleanly; lost clusters are possible")
+        if not fat1 & arch.HARD_ERROR_BIT:
+            self.notes.append("the hard-error bit of FAT[1] is clear: a disk error was met")
+
+    async def _count_free(self):
+        free = 0
+        for cluster in range(arch.FIRST_DATA_CLUSTER, self.layout.max_cluster + 1):
+            if await self._fat_entry(cluster) == arch.FAT_FREE:
+                free += 1
+        return free
+
+    # -- the FAT ----------------------------------------------------------------------------
+
+    async def _fat_sector(self, index):
+        sector = self._fat.get(index)
+        if sector is None:
+            sector = bytearray(await self.device.read_block(self.layout.fat_start + index))
+            self._fat[index] = sector
+        return sector
+
+    async def _fat_entry(self, cluster):
+        index, slot = divmod(cluster, arch.FAT_ENTRIES_PER_SECTOR)
+        sector = await self._fat_sector(index)
+        return _u32(sector, slot * arch.FAT_ENTRY_BYTES) & arch.FAT_ENTRY_MASK
+
+    async def _set_fat_entry(self, cluster, value):
+        index, slot = divmod(cluster, arch.FAT_ENTRIES_PER_SECTOR)
+        sector = await self._fat_sector(index)
+        offset = slot * arch.FAT_ENTRY_BYTES
+        reserved = _u32(sector, offset) & ~arch.FAT_ENTRY_MASK & 0xFFFFFFFF
+        _put32(sector, offset, reserved | (value & arch.FAT_ENTRY_MASK))
+        self._fat_dirty.add(index)
+
+    async def _write_fat_sectors(self, indices):
+        for fat in range(self.layout.num_fats):
+            base = self.layout.fat_start + fat * self.layout.fat_sectors
+            for index in sorted(indices):
+                await self.device.write_block(base + index, bytes(self._fat[index]))
+
+    async def _flush_fat(self):
+        await self._write_fat_sectors(self._fat_dirty)
+        self._fat_dirty.clear()
+        # Clean sectors need not stay in memory; keep the one allocation continues in.
+        keep = self.next_free // arch.FAT_ENTRIES_PER_SECTOR
+        self._fat = {index: sector for index, sector in self._fat.items() if index == keep}
+
+    async def _set_clean_bit(self, clean):
+        fat1 = await self._fat_entry(1)
+        value = fat1 | arch.CLEAN_SHUTDOWN_BIT if clean else fat1 & ~arch.CLEAN_SHUTDOWN_BIT
+        await self._set_fat_entry(1, value)
+        self._fat_dirty.discard(0)
+        await self._write_fat_sectors([0])
+
+    async def _mark_dirty(self):
+        """Clear the clean-shutdown bit on both FATs before the first write after mount."""
+        if not self._dirty_marked:
+            await self._set_clean_bit(False)
+            self._dirty_marked = True
+
+    async def _allocate(self, previous):
+        """A free cluster, found from the hint onwards (wrapping), marked end of chain and
+        linked after ``previous`` (0: none). Raises :class:`FatFullError`."""
+        first, last = arch.FIRST_DATA_CLUSTER, self.layout.max_cluster
+        if self.free_count == 0:
+            raise FatFullError("the card is full: no free cluster")
+        start = min(max(self.next_free, first), last)
+        cluster = start
+        while await self._fat_entry(cluster) != arch.FAT_FREE:
+            cluster = cluster + 1 if cluster < last else first
+            if cluster == start:
+                self.free_count = 0
+                raise FatFullError("the card is full: no free cluster")
+        await self._set_fat_entry(cluster, arch.FAT_EOC)
+        if previous:
+            await self._set_fat_entry(previous, cluster)
+        self.free_count -= 1
+        self.next_free = cluster + 1 if cluster < last else first
+        return cluster
+
+    async def _write_fsinfo(self):
+        if not self.fsinfo_valid:
+            return
+        _put32(self._fsinfo, arch.FSI_FREE_COUNT, self.free_count)
+        _put32(self._fsinfo, arch.FSI_NXT_FREE, self.next_free)
+        await self.device.write_block(self.layout.partition_start + self.layout.fsinfo_sector,
+                                      bytes(self._fsinfo))
+
+    # -- the root directory -----------------------------------------------------------------
+
+    async def _chain(self, first):
+        chain, cluster = [], first
+        while arch.FIRST_DATA_CLUSTER <= cluster <= self.layout.max_cluster:
+            if len(chain) > self.layout.cluster_count:
+                raise FatError(f"the cluster chain from cluster {first} loops")
+            chain.append(cluster)
+            cluster = await self._fat_entry(cluster)
+        if cluster < arch.FAT_EOC_MIN:
+            raise FatError(f"the cluster chain from cluster {first} breaks at cluster "
+                           f"{chain[-1]} (FAT entry 0x{cluster:08x})")
+        return chain
+
+    async def _root_slots(self):
+        """Yield ``(lba, index, entry)`` for each directory slot of the root, in order."""
+        for cluster in await self._chain(self.layout.root_cluster):
+            lba = self.layout.cluster_lba(cluster)
+            for sector in range(self.layout.sectors_per_cluster):
+                data = await self.device.read_block(lba + sector)
+                for index in range(arch.DIR_ENTRIES_PER_SECTOR):
+                    offset = index * arch.DIR_ENTRY_BYTES
+                    yield lba + sector, index, data[offset:offset + arch.DIR_ENTRY_BYTES]
+
+    async def _scan_root(self):
+        """The highest LOG file number in the root (0: none), the first free slot at the
+        end of the directory (``None`` when the directory is full) and its slot count."""
+        highest, end, slots = 0, None, 0
+        async for lba, index, entry in self._root_slots():
+            slots += 1
+            if entry[0] == arch.DIR_END:
+                end = (lba, index)
+                break
+            if entry[0] == arch.DIR_DELETED or entry[arch.DIR_ATTR] == arch.Attr.LONG_NAME:
+                continue
+            match = _LOG_NAME.fullmatch(entry[:arch.DIR_NAME_BYTES])
+            if match:
+                highest = max(highest, int(match.group(1)))
+        return highest, end, slots
+
+    async def _grow_root(self):
+        """Append a zeroed cluster to the root directory; return its first slot."""
+        chain = await self._chain(self.layout.root_cluster)
+        if (len(chain) + 1) * self.layout.cluster_bytes > (arch.DIR_MAX_ENTRIES
+                                                           * arch.DIR_ENTRY_BYTES):
+            raise FatFullError(f"the root directory is full ({arch.DIR_MAX_ENTRIES} entries)")
+        cluster = await self._allocate(chain[-1])
+        lba = self.layout.cluster_lba(cluster)
+        for sector in range(self.layout.sectors_per_cluster):
+            await self.device.write_block(lba + sector, bytes(SECTOR))
+        await self._flush_fat()
+        await self._write_fsinfo()
+        return lba, 0
+
+    # -- files ------------------------------------------------------------------------------
+
+    async def create_log(self, timestamp=None):
+        """Create ``LOGnnnnn.TXT`` with the number after the highest LOG file in the root
+        directory (created at ``timestamp``, default the FAT epoch); return its
+        :class:`LogFile`. Never overwrites; raises :class:`FatError` after LOG99999."""
+        highest, slot, _ = await self._scan_root()
+        if highest >= LOG_MAX_NUMBER:
+            raise FatError(f"no free LOG file number: LOG{LOG_MAX_NUMBER:05d}.TXT exists and "
+                           f"is the last one the 8.3 name LOGnnnnn.TXT allows")
+        number = highest + 1
+        name = f"LOG{number:05d}TXT".encode("ascii")
+        await self._mark_dirty()
+        if slot is None:
+            slot = await self._grow_root()
+        date, time = fat_date_time(FAT_EPOCH if timestamp is None else timestamp)
+        entry = bytearray(arch.DIR_ENTRY_BYTES)
+        entry[arch.DIR_NAME:arch.DIR_NAME + arch.DIR_NAME_BYTES] = name
+        entry[arch.DIR_ATTR] = arch.Attr.ARCHIVE
+        for field, value in ((arch.DIR_CRT_TIME, time), (arch.DIR_CRT_DATE, date),
+                             (arch.DIR_LST_ACC_DATE, date), (arch.DIR_WRT_TIME, time),
+                             (arch.DIR_WRT_DATE, date)):
+            _put16(entry, field, value)
+        log = LogFile(self, f"LOG{number:05d}.TXT", slot, entry)
+        await log._write_entry()
+        self._files.append(log)
+        return log
+
+    async def sync(self, timestamp):
+        """Sync every open file (see :meth:`LogFile.sync`)."""
+        for log in self._files:
+            await log.sync(timestamp)
+
+    async def close(self, timestamp=None):
+        """Sync every open file and mark the volume clean (clean-shutdown bit set)."""
+        for log in list(self._files):
+            await log.close(timestamp)
+        await self._flush_fat()
+        await self._write_fsinfo()
+        if self._dirty_marked:
+            await self._set_clean_bit(True)
+            self._dirty_marked = False
+
+
+class LogFile:
+    """An open log file: :meth:`append` data, :meth:`sync` it to the card, :meth:`close`."""
+
+    def __init__(self, volume, name, slot, entry):
+        self.volume = volume
+        self.name = name
+        self.size = 0
+        self._slot = slot               # (lba, index) of the directory entry
+        self._entry = entry
+        self._first = 0
+        self._cluster = 0               # the cluster the file's end lies in
+        self._tail = bytearray()        # bytes of the last, partial sector
+        self._closed = False
+
+    @property
+    def first_cluster(self):
+        return self._first
+
+    def _tail_lba(self):
+        """The sector the byte at offset ``size`` of the file lies in."""
+        layout = self.volume.layout
+        sector_in_cluster = (self.size % layout.cluster_bytes) // SECTOR
+        return layout.cluster_lba(self._cluster) + sector_in_cluster
+
+    async def _next_cluster(self):
+        cluster = await self.volume._allocate(self._cluster)
+        if not self._first:
+            self._first = cluster
+        self._cluster = cluster
+
+    async def append(self, data):
+        """Add ``data`` to the file: whole sectors are written now, the partial last one at
+        the next :meth:`sync`. Raises :class:`FatFullError` (with ``written``) when the card
+        fills; what fitted is kept."""
+        if self._closed:
+            raise FatError(f"{self.name} is closed")
+        await self.volume._mark_dirty()
+        view, written = memoryview(bytes(data)), 0
+        cluster_bytes = self.volume.layout.cluster_bytes
+        while written < len(view):
+            if self.size % cluster_bytes == 0 and not self._tail:
+                try:
+                    await self._next_cluster()
+                except FatFullError as full:
+                    raise FatFullError(f"{full}: {self.name} took {written} of {len(view)} "
+                                       f"bytes", written) from None
+            take = min(SECTOR - len(self._tail), len(view) - written)
+            self._tail += view[written:written + take]
+            written += take
+            if len(self._tail) == SECTOR:
+                await self.volume.device.write_block(self._tail_lba(), bytes(self._tail))
+                self._tail.clear()
+                self.size += SECTOR
+        return written
+
+    async def sync(self, timestamp):
+        """Make the file on the card hold everything appended so far, in the safe order:
+        the partial data sector, the FAT sectors (every FAT), the directory entry (size,
+        first cluster, write time from ``timestamp``), then FSInfo."""
+        volume = self.volume
+        if self._tail:
+            await volume.device.write_block(self._tail_lba(),
+                                            bytes(self._tail.ljust(SECTOR, b"\0")))
+        await volume._flush_fat()
+        date, time = fat_date_time(timestamp)
+        _put16(self._entry, arch.DIR_WRT_DATE, date)
+        _put16(self._entry, arch.DIR_WRT_TIME, time)
+        _put16(self._entry, arch.DIR_LST_ACC_DATE, date)
+        _put16(self._entry, arch.DIR_FST_CLUS_HI, self._first >> 16)
+        _put16(self._entry, arch.DIR_FST_CLUS_LO, self._first & 0xFFFF)
+        _put32(self._entry, arch.DIR_FILE_SIZE, self.size + len(self._tail))
+        await self._write_entry()
+        await volume._write_fsinfo()
+
+    async def _write_entry(self):
+        lba, index = self._slot
+        sector = bytearray(await self.volume.device.read_block(lba))
+        offset = index * arch.DIR_ENTRY_BYTES
+        sector[offset:offset + arch.DIR_ENTRY_BYTES] = self._entry
+        await self.volume.device.write_block(lba, bytes(sector))
+
+    async def close(self, timestamp=None):
+        """Final sync (at ``timestamp``, default the last write time) and close; the volume
+        is marked clean when no other file is open."""
+        if self._closed:
+            return
+        if timestamp is None:
+            date, time = _u16(self._entry, arch.DIR_WRT_DATE), _u16(self._entry,
+                                                                     arch.DIR_WRT_TIME)
+            timestamp = (_dt.date(1980 + (date >> 9), (date >> 5) & 0xF, date & 0x1F),
+                         _dt.time(time >> 11, (time >> 5) & 0x3F, (time & 0x1F) * 2))
+        await self.sync(timestamp)
+        self._closed = True
+        volume = self.volume
+        volume._files.remove(self)
+        if not volume._files and volume._dirty_marked:
+            await volume._set_clean_bit(True)
+            volume._dirty_marked = False
