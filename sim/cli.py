@@ -257,6 +257,52 @@ def _cmd_demo(args):
         raise CliError("the gateware and the reference filter disagree")
 
 
+#: Size suffixes of ``maglog card format --size``: binary (KiB, MiB, GiB) and decimal (kB,
+#: MB, GB, as card makers count).
+_SIZE_UNITS = {"": 1, "kib": 1 << 10, "mib": 1 << 20, "gib": 1 << 30,
+               "kb": 10**3, "mb": 10**6, "gb": 10**9}
+#: The largest card image ``maglog card format`` writes (SDHC's upper end).
+CARD_SIZE_MAX = 32 << 30
+
+
+def _size_arg(text):
+    """A byte count with an optional unit (``8GB``, ``64MiB``, ``7948206080``)."""
+    import re
+    match = re.fullmatch(r"\s*(\d{1,15})\s*([kKmMgG]i?[bB])?\s*", text)
+    if match is None:
+        raise argparse.ArgumentTypeError(
+            f"expected a size in bytes with an optional unit (KiB, MiB, GiB, kB, MB, GB), "
+            f"not {text!r}")
+    size = int(match[1]) * _SIZE_UNITS[(match[2] or "").lower()]
+    if not 0 < size <= CARD_SIZE_MAX:
+        raise argparse.ArgumentTypeError(f"a card size must be above 0 and at most 32 GiB, "
+                                         f"not {text!r}")
+    return size
+
+
+def _cmd_card_format(args):
+    from ..sw.fat32 import FatError, format_image
+    path = Path(args.image)
+    if path.exists() and not args.force:
+        raise CliError(f"{path}: exists; formatting replaces it (give --force to do so)")
+    if path.is_dir():
+        raise CliError(f"{path}: is a folder, not a card image")
+    try:
+        plan = format_image(path, args.size, cluster_bytes=args.cluster_size,
+                            label=args.label, volume_id=args.volume_id)
+    except FatError as error:
+        raise CliError(str(error)) from None
+    cluster = plan.sectors_per_cluster * 512
+    for name, value in [
+            ("image", f"{path} ({args.size:,} bytes, sparse)"),
+            ("partition", f"FAT32 (type 0x0C) from sector {plan.partition_start:,}, "
+                          f"{plan.partition_sectors:,} sectors"),
+            ("clusters", f"{plan.cluster_count:,} of {cluster:,} bytes"),
+            ("FATs", f"2 x {plan.fat_sectors:,} sectors"),
+            ("data", f"from partition sector {plan.data_offset:,}")]:
+        print(f"{name + ':':<11}{value}")
+
+
 def _reference_arg(text):
     from ..calib.pipeline import CalibrationError, check_reference
     try:
@@ -348,6 +394,27 @@ def _parser():
     regmap.add_argument("-o", "--output", default="-",
                         help="output file (default: standard output)")
     regmap.set_defaults(func=_cmd_hdl_regmap)
+
+    card = commands.add_parser("card", help="card images")
+    card_commands = card.add_subparsers(dest="card_command", metavar="WHAT", required=True)
+    card_format = card_commands.add_parser(
+        "format", help="write a blank FAT32 card image, laid out as the SD Association's "
+                       "formatter lays out an SDHC card")
+    card_format.add_argument("image", help="the image file to write")
+    card_format.add_argument("--size", type=_size_arg, required=True,
+                             help="card size: bytes, or with a unit (KiB, MiB, GiB; kB, MB, "
+                                  "GB), at most 32 GiB")
+    card_format.add_argument("--cluster-size", type=_size_arg, default=None,
+                             help="cluster size in bytes (default: the SD Association's for "
+                                  "the capacity, 32 KiB for SDHC; needed below 2 GiB)")
+    card_format.add_argument("--label", default="MAGLOG",
+                             help="volume label, up to 11 characters (default: %(default)s)")
+    card_format.add_argument("--volume-id", type=_int_in(0, (1 << 32) - 1), default=None,
+                             help="volume serial number (default: random); give one for a "
+                                  "reproducible image")
+    card_format.add_argument("--force", action="store_true",
+                             help="replace an existing file")
+    card_format.set_defaults(func=_cmd_card_format)
 
     calibrate = commands.add_parser(
         "calibrate", help="calibrate the magnetometer from a card image or log file")

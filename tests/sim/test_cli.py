@@ -93,6 +93,10 @@ OPTIONS = [
     (["demo"], "--divisor", ["0", "65536", "100000", "1000000000"]),
     (["demo"], "--max-cycles", ["0", "1e3"]),
     (["hdl", "regmap"], "--format", ["pdf", "C"]),
+    (["card", "format", "card.img", "--size", "64MiB"], "--cluster-size",
+     ["3000", "64KiB", "0", "1GB"]),
+    (["card", "format", "card.img"], "--size", ["0", "33GiB", "40GB", "1.5GB", "8 TB",
+                                                "64MiB"]),
     (["demo"], "--backend", ["ghdl", "Icarus"]),
     (["calibrate", "card.img"], "--method", ["PSO", "newton"]),
 ]
@@ -183,3 +187,31 @@ def test_full_disk_is_one_line(what, capsys):
     assert main(["hdl", what, "-o", "/dev/full"]) == 1
     assert capsys.readouterr().err == ("maglog: error: cannot write /dev/full: "
                                        "no space left on the device\n")
+
+
+def test_card_format_writes_a_clean_fat32_image(tmp_path, capsys, fat_tools):
+    import shutil
+    import subprocess
+    image = tmp_path / "card.img"
+    assert main(["card", "format", str(image), "--size", "64MiB", "--cluster-size", "512",
+                 "--volume-id", "7"]) == 0
+    out = capsys.readouterr().out
+    assert "clusters:  114,688 of 512 bytes" in out and "from sector 8,192" in out
+    # The same arguments give the same bytes; an existing image is kept without --force.
+    assert main(["card", "format", str(image), "--size", "64MiB"]) == 1
+    assert "exists; formatting replaces it" in capsys.readouterr().err
+    again = tmp_path / "again.img"
+    assert main(["card", "format", str(again), "--size", "64MiB", "--cluster-size", "512",
+                 "--volume-id", "7"]) == 0
+    assert again.read_bytes() == image.read_bytes()
+    # fsck.fat on the partition (it has no offset option): nothing but banner and summary.
+    partition = tmp_path / "partition.img"
+    with open(image, "rb") as src, open(partition, "wb") as dst:
+        src.seek(8192 * 512)
+        shutil.copyfileobj(src, dst)
+    result = subprocess.run([fat_tools["fsck.fat"], "-n", str(partition)],
+                            capture_output=True, text=True)
+    lines = [line for line in result.stdout.splitlines()
+             if line and not line.startswith("fsck.fat ")]
+    assert result.returncode == 0 and len(lines) == 1 and "/114688 clusters" in lines[0], \
+        result.stdout + result.stderr
