@@ -364,6 +364,10 @@ def _find_partition(mbr):
     if mbr[arch.BS_OEM_NAME:arch.BS_OEM_NAME + 8] == arch.EXFAT_OEM_NAME:
         raise FatError("sector 0: an exFAT boot sector without a partition table; "
                        "exFAT is not supported, only FAT32 in an MBR partition")
+    if (mbr[arch.BS_FIL_SYS_TYPE:arch.BS_FIL_SYS_TYPE + 8] == arch.FIL_SYS_TYPE_FAT32
+            or mbr[arch.BS16_FIL_SYS_TYPE:arch.BS16_FIL_SYS_TYPE + 3] == b"FAT"):
+        raise FatError("sector 0: a FAT boot sector without a partition table; only a card "
+                       "with an MBR partition (as SD cards are formatted) is supported")
     for index in range(arch.MBR_PARTITIONS):
         entry = arch.MBR_PARTITION_TABLE + index * arch.MBR_PARTITION_ENTRY_BYTES
         kind = mbr[entry + arch.PART_TYPE]
@@ -688,9 +692,9 @@ class Volume:
         """Sync every open file and mark the volume clean (clean-shutdown bit set)."""
         for log in list(self._files):
             await log.close(timestamp)
-        await self._flush_fat()
-        await self._write_fsinfo()
         if self._dirty_marked:
+            await self._flush_fat()
+            await self._write_fsinfo()
             await self._set_clean_bit(True)
             self._dirty_marked = False
 

@@ -80,6 +80,7 @@ BS_BOOT_SIG = 66                       # u8, 0x29: the next three fields are pre
 BS_VOL_ID = 67                         # u32
 BS_VOL_LAB = 71                        # 11 bytes
 BS_FIL_SYS_TYPE = 82                   # 8 bytes, informative only (FAT §3.5)
+BS16_FIL_SYS_TYPE = 54                 # the same field in a FAT12/16 boot sector (FAT §3.2)
 
 EXT_FLAGS_NO_MIRROR = 0x0080
 EXTENDED_BOOT_SIGNATURE = 0x29

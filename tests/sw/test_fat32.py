@@ -222,6 +222,7 @@ def test_logs_read_back_by_every_judge(tmp_path, fat_tools, external, size, clus
     assert names == [f"LOG{n:05d}.TXT" for n in range(1, 6)]
     expected = dict(zip(names, contents))
     judge(image, expected, tmp_path, fat_tools, external)
+    assert os.stat(image).st_blocks * 512 < 4 * MiB            # still sparse
     with open_card(image) as card:
         entry = card.stat("LOG00005.TXT")
         assert entry.mtime == T1
@@ -446,6 +447,18 @@ def test_refuses_zeroed_mbr(card):
     assert refusal(card) == "sector 0: no MBR: bytes 510-511 are 0000, not 55aa"
 
 
+@pytest.mark.parametrize("fat", ["16", "32"])
+def test_refuses_a_card_without_partition_table(tmp_path, fat_tools, fat):
+    image = tmp_path / "superfloppy.img"
+    image.write_bytes(b"")
+    os.truncate(image, 64 * MiB)
+    subprocess.run([fat_tools["mkfs.fat"], "-F", fat, str(image)], check=True,
+                   capture_output=True)
+    assert refusal(image) == ("sector 0: a FAT boot sector without a partition table; only "
+                              "a card with an MBR partition (as SD cards are formatted) is "
+                              "supported")
+
+
 def test_refuses_mbr_without_partition(card):
     patch(card, 446, bytes(64))
     assert refusal(card) == "sector 0: the MBR has no partition"
@@ -516,8 +529,14 @@ def test_allocation_wraps_from_the_hint(card, tmp_path, fat_tools, external):
     names = run(mounted(card, lambda v: write_logs(v, [data])))
     with open_card(card) as reader:
         assert reader.clusters(names[0]) == [last - 1, last, 3]
-    judge(card, {names[0]: data}, tmp_path, fat_tools, external)
     assert fsinfo(card)[1] == 4
+    # From the hint again: last-1 and last are taken, so the search wraps to 4 and 5.
+    patch(card, offset + 512 + 492, (last - 1).to_bytes(4, "little"))
+    more = payload(2 * 512, 9)
+    names += run(mounted(card, lambda v: write_logs(v, [more])))
+    with open_card(card) as reader:
+        assert reader.clusters(names[1]) == [4, 5]
+    judge(card, {names[0]: data, names[1]: more}, tmp_path, fat_tools, external)
 
 
 # -- The fsck judge itself --------------------------------------------------------------------
