@@ -19,7 +19,10 @@ Decisions beyond the specification's letter:
   leaves at most lost clusters behind, and the logger must keep recording.
 * Only the primary FSInfo is kept up to date; the backup (sector 7) is the format-time copy.
 * Sync writes data sectors, then the changed FAT sectors (all of FAT 1, then FAT 2), then the
-  directory entry, then FSInfo: a cut at any point leaves at worst lost clusters.
+  directory entry, then FSInfo. Within each FAT the sector that links a chain already on the
+  card to the new clusters goes last, so a cut at any point leaves at worst lost clusters,
+  a chain longer than the file, FATs that differ, or a stale FSInfo (the tests cut after
+  every block and check with ``fsck.fat``).
 """
 
 import abc
@@ -66,11 +69,12 @@ class BlockDevice(abc.ABC):
 
 class ImageFile(BlockDevice):
     """A raw card image on the host as a block device (for the formatter's tests and the
-    CLI). Blocks beyond the end of the file read as zeros."""
+    CLI). Blocks beyond the end of the file read as zeros. Writes are unbuffered: each block
+    is in the file when :meth:`write_block` returns, as on a card."""
 
     def __init__(self, path):
         self.path = os.fspath(path)
-        self._file = open(self.path, "r+b")
+        self._file = open(self.path, "r+b", buffering=0)
 
     def close(self):
         self._file.close()
@@ -454,6 +458,8 @@ class Volume:
         self._fsinfo = None
         self._fat = {}                  # FAT sector index -> bytearray (FAT 1's view)
         self._fat_dirty = set()
+        self._fresh = set()             # clusters allocated since the last FAT flush
+        self._anchors = set()           # FAT sectors linking synced chains to fresh clusters
         self._dirty_marked = False
         self._files = []
 
@@ -550,12 +556,19 @@ class Volume:
     async def _write_fat_sectors(self, indices):
         for fat in range(self.layout.num_fats):
             base = self.layout.fat_start + fat * self.layout.fat_sectors
-            for index in sorted(indices):
+            for index in indices:
                 await self.device.write_block(base + index, bytes(self._fat[index]))
 
     async def _flush_fat(self):
-        await self._write_fat_sectors(self._fat_dirty)
+        # The sectors that link a chain already on the card to fresh clusters go last: a cut
+        # before them leaves the fresh clusters lost (recoverable), never a chain that runs
+        # into a free cluster.
+        order = (sorted(self._fat_dirty - self._anchors)
+                 + sorted(self._fat_dirty & self._anchors))
+        await self._write_fat_sectors(order)
         self._fat_dirty.clear()
+        self._fresh.clear()
+        self._anchors.clear()
         # Clean sectors need not stay in memory; keep the one allocation continues in.
         keep = self.next_free // arch.FAT_ENTRIES_PER_SECTOR
         self._fat = {index: sector for index, sector in self._fat.items() if index == keep}
@@ -589,6 +602,9 @@ class Volume:
         await self._set_fat_entry(cluster, arch.FAT_EOC)
         if previous:
             await self._set_fat_entry(previous, cluster)
+            if previous not in self._fresh:
+                self._anchors.add(previous // arch.FAT_ENTRIES_PER_SECTOR)
+        self._fresh.add(cluster)
         self.free_count -= 1
         self.next_free = cluster + 1 if cluster < last else first
         return cluster
