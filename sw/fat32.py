@@ -198,7 +198,7 @@ def plan_format(size_bytes, cluster_bytes=None):
         if not sdhc:
             raise FatError(
                 f"A card of {size_bytes} bytes is not SDHC (above 2 GiB up to 32 GiB): the "
-                f"SD Association formats it as FAT12/16 or exFAT; give cluster_bytes to "
+                f"SD Association formats it as FAT12/16 or exFAT; give a cluster size to "
                 f"format it as FAT32 anyway")
         cluster_bytes = arch.SDHC_SECTORS_PER_CLUSTER * SECTOR
     sectors_per_cluster, rest = divmod(cluster_bytes, SECTOR)

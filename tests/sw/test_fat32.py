@@ -196,7 +196,7 @@ def test_format_layout(tmp_path, fat_tools, size, cluster_bytes):
 
 def test_format_refuses_what_is_not_fat32(tmp_path):
     image = tmp_path / "card.img"
-    with pytest.raises(FatError, match="not SDHC.*give cluster_bytes"):
+    with pytest.raises(FatError, match="not SDHC.*give a cluster size"):
         format_image(image, 1024 * MiB)
     with pytest.raises(FatError, match="gives 63488 clusters; FAT32 needs at least 65525"):
         format_image(image, 256 * MiB, cluster_bytes=4096)
