@@ -1,17 +1,36 @@
 """The firmware's view of the hardware: asynchronous register access and block data.
 
-Firmware is written once against these interfaces; sim/ provides the backends (Amaranth
-simulator, cocotb, the transaction-level model).
+Firmware is written once against these interfaces. Backends implement them: the Amaranth
+simulator (:mod:`maglog.sim.sdio_amaranth`), cocotb (:mod:`maglog.sim.cocotb_sdio`) and the
+transaction-level model of the logger (:mod:`maglog.sim.models.logger`).
+
+Two exceptions end the firmware from outside; they derive from :class:`BaseException` so
+that no ``except Exception`` in the firmware catches them.
 """
 
 import abc
 
 
-__all__ = ["RegisterBus", "BlockPort", "BusTimeout"]
+__all__ = ["RegisterBus", "BlockPort", "BusTimeout", "HardwareReset", "PowerCut"]
 
 
 class BusTimeout(Exception):
     """A condition did not come true in time."""
+
+
+class HardwareReset(BaseException):
+    """The hardware reset the CPU (a watchdog expiry).
+
+    Raised by a backend's :class:`RegisterBus` from the first access after the reset.
+    Firmware never catches it: the harness restarts the application from the top, as a
+    processor boots again after its reset."""
+
+
+class PowerCut(BaseException):
+    """The simulated power was cut.
+
+    Raised by a backend's :class:`RegisterBus`; the run ends there, and the card image is
+    what the card holds at that instant."""
 
 
 class RegisterBus(abc.ABC):
