@@ -1,0 +1,232 @@
+"""System scenarios: what the whole logger sees (serial bytes with their timing, button
+presses) and what its card must then hold, independently of the backend that runs it.
+
+A :class:`SystemScenario` is the one input of every system backend (the transaction-level
+model, the Amaranth simulator, cocotb): the same scenario and the same firmware must give
+the same card image on each. Its :meth:`~SystemScenario.expected_frames` come from the
+reference filter (sim/reference.py), never from a backend.
+
+Frames of different channels may overlap on their lines, but a backend decides their order
+in the log from the instant each one ends, to within a few bit times; a scenario therefore
+keeps the ends of any two kept frames at least :data:`MIN_END_GAP_S` apart, and keeps the
+lines quiet around each button press, where the instant recording starts or stops differs
+between backends by the firmware's speed.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import random
+from dataclasses import dataclass, field
+
+from ..hw.arch import frames as arch_frames
+from ..hw.arch import uart as arch_uart
+from ..hw.frame_filter import ChannelKind
+from ..hw.frontend import ChannelConfig
+from . import sentences
+from .reference import Kind, reference_filter
+
+
+__all__ = ["Burst", "SystemScenario", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
+
+#: Bit times of one 8N1 character on the line: start, 8 data, stop.
+UART_FRAME_BITS = 10
+#: The least time between the ends of two kept frames of different channels.
+MIN_END_GAP_S = 200e-6
+
+_KIND = {ChannelKind.PMAG: Kind.PMAG, ChannelKind.NMEA: Kind.NMEA,
+         ChannelKind.CESIUM: Kind.CESIUM}
+
+
+@dataclass(frozen=True)
+class Burst:
+    """Bytes sent back to back on one channel's line from ``start`` (seconds)."""
+    channel: int
+    start: float
+    data: bytes
+
+    def end(self, baud):
+        return self.start + len(self.data) * UART_FRAME_BITS / baud
+
+
+@dataclass
+class SystemScenario:
+    """The logger's inputs over one run.
+
+    ``channels`` and ``clk_freq`` are the gateware's build parameters (every baud rate must
+    be reachable from the clock, see :func:`maglog.hw.frontend.divisor_for`); ``presses``
+    are the instants the button goes down, each held for ``hold`` seconds; the run ends at
+    ``until``.
+    """
+    channels: tuple
+    clk_freq: float
+    bursts: list
+    presses: list
+    until: float
+    hold: float = 2e-3
+    debounce_s: float = 0.5e-3
+    max_frame: int = arch_frames.DEFAULT_MAX_FRAME
+    timestamp: _dt.datetime | None = None
+    notes: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.channels = tuple(c if isinstance(c, ChannelConfig) else ChannelConfig(*c)
+                              for c in self.channels)
+        for burst in self.bursts:
+            if not 0 <= burst.channel < len(self.channels):
+                raise ValueError(f"Burst channel must be in 0..{len(self.channels) - 1}, not "
+                                 f"{burst.channel!r}")
+        for k in range(len(self.channels)):
+            ordered = sorted(self.channel_bursts(k), key=lambda b: b.start)
+            baud = self.channels[k].baud
+            for a, b in zip(ordered, ordered[1:]):
+                if b.start < a.end(baud):
+                    raise ValueError(f"Bursts of channel {k} overlap at {b.start:.6f} s")
+
+    def channel_bursts(self, channel):
+        return sorted((b for b in self.bursts if b.channel == channel), key=lambda b: b.start)
+
+    def channel_bytes(self, channel):
+        """Every byte channel ``channel`` carries, in order."""
+        return b"".join(b.data for b in self.channel_bursts(channel))
+
+    def kept_frames(self, channel):
+        """``(end_time, frame)`` for each frame the reference filter keeps on a channel;
+        the end time is that of the frame's stop bit of its last byte."""
+        baud = self.channels[channel].baud
+        kind = _KIND[self.channels[channel].kind]
+        stream = self.channel_bytes(channel)
+        kept = reference_filter(kind, stream, max_frame=self.max_frame).frames
+        # Map each kept frame back to its place in the stream (kept frames are verbatim and
+        # in order), and that place to a time.
+        starts, offset = [], 0
+        for burst in self.channel_bursts(channel):
+            starts.append((offset, burst))
+            offset += len(burst.data)
+        result, search = [], 0
+        for frame in kept:
+            at = stream.index(frame, search)
+            last = at + len(frame) - 1
+            search = last + 1
+            base, burst = max((s for s in starts if s[0] <= last), key=lambda s: s[0])
+            result.append((burst.start + (last - base + 1) * UART_FRAME_BITS / baud, frame))
+        return result
+
+    def log_frames(self, start, stop):
+        """The frames a log recorded from ``start`` to ``stop`` holds, in order: those that
+        end in that window, by end time. Refuses a scenario whose kept frames end too close
+        together for their order to be certain."""
+        ends = sorted((t, k, frame) for k in range(len(self.channels))
+                      for t, frame in self.kept_frames(k))
+        for (t0, k0, _), (t1, k1, _) in zip(ends, ends[1:]):
+            if k0 != k1 and t1 - t0 < MIN_END_GAP_S:
+                raise ValueError(f"Frames of channels {k0} and {k1} end {t1 - t0:.2e} s "
+                                 f"apart at {t0:.6f} s: closer than {MIN_END_GAP_S} s")
+        return [frame for t, _, frame in ends if start <= t < stop]
+
+    def recorded_frames(self):
+        """The frames the log of a recording between the first two presses holds: the
+        lines are quiet around both presses, so the window is the presses themselves."""
+        if len(self.presses) < 2:
+            raise ValueError("A recording needs two button presses (start and stop)")
+        return self.log_frames(self.presses[0], self.presses[1])
+
+    def bit_cycles(self, channel):
+        return self.clk_freq / self.channels[channel].baud
+
+    def check_quiet(self, margin):
+        """Raise unless no line carries a byte within ``margin`` seconds of a press."""
+        for press in self.presses:
+            for k in range(len(self.channels)):
+                baud = self.channels[k].baud
+                for burst in self.channel_bursts(k):
+                    if burst.start - margin < press < burst.end(baud) + margin:
+                        raise ValueError(f"Channel {k} is busy within {margin} s of the "
+                                         f"press at {press} s")
+
+
+def _pmag_frames(rng, count, seq0):
+    frames = []
+    for n in range(count):
+        x, y, z = (rng.uniform(-50_000, 50_000) for _ in range(3))
+        frames.append(sentences.pmag1((seq0 + n) % 100_000, x, y, z))
+    return frames
+
+
+class _Timeline:
+    """Places frames on their lines so that no two end closer than :data:`MIN_END_GAP_S`
+    (a frame is moved later until it fits, never earlier)."""
+    def __init__(self, channels):
+        self.channels = channels
+        self.bursts = []
+        self._ends = []
+        self._free = [0.0] * len(channels)
+
+    def add(self, channel, start, frame):
+        baud = self.channels[channel].baud
+        duration = len(frame) * UART_FRAME_BITS / baud
+        start = max(start, self._free[channel])
+        while any(abs(start + duration - end) < MIN_END_GAP_S for end in self._ends):
+            start += MIN_END_GAP_S
+        self.bursts.append(Burst(channel, start, frame))
+        self._ends.append(start + duration)
+        self._free[channel] = start + duration
+        return start + duration
+
+
+def short_scenario(seed=0):
+    """A short recording for comparing backends: all three channels at fast baud rates (a
+    3.6864 MHz clock gives 230400 baud at divisor 1), the GPS time and a fix while idle,
+    then a recording with four GGA fixes (four flushes) among magnetometer and cesium
+    frames, distractors (RMC) and faults (a bad checksum, frames cut short), stopped by the
+    button.
+
+    Timeline (ms): 0 power-up; 60 ZDA and a GGA fix (idle); 100 press (start); 120-200
+    frames; 240 press (stop); 300 end.
+    """
+    rng = random.Random(seed)
+    channels = (ChannelConfig(ChannelKind.PMAG, 230_400),
+                ChannelConfig(ChannelKind.NMEA, 230_400),
+                ChannelConfig(ChannelKind.CESIUM, 115_200))
+    when = _dt.datetime(2026, 11, 24, 12, 0, 0, tzinfo=_dt.timezone.utc)
+    seconds_of_day = when.hour * 3600 + when.minute * 60 + when.second
+    lat, lon = 47.3769, 8.5417
+    line = _Timeline(channels)
+    line.add(1, 0.060, sentences.zda(when))
+    line.add(1, 0.060, sentences.gga(seconds_of_day, lat, lon))
+    # The recording: a GPS group every 20 ms (four GGA with a fix), the magnetometer every
+    # 5 ms, the cesium every 10 ms.
+    seq = rng.randrange(100_000)
+    events = []
+    for n in range(4):
+        group = [sentences.gga(seconds_of_day + n, lat + 1e-4 * n, lon),
+                 sentences.vtg(90.0, 29.0),
+                 sentences.rmc(when + _dt.timedelta(seconds=n), lat, lon,
+                               speed_knots=29.0, course_deg=90.0)]
+        if n == 1:
+            # A GGA with a bad checksum: dropped, no flush.
+            bad = bytearray(sentences.gga(seconds_of_day + n, lat, lon))
+            bad[-3] = ord("0") if bad[-3] != ord("0") else ord("1")
+            group.insert(1, bytes(bad))
+        events += [(0.120 + n * 0.020, 1, frame) for frame in group]
+    t = 0.1213
+    while t < 0.200:
+        x, y, z = (rng.uniform(-50_000, 50_000) for _ in range(3))
+        frame = sentences.pmag1(seq % 100_000, x, y, z)
+        seq += 1
+        if rng.random() < 0.1:
+            frame = frame[:20]          # cut short: the next `$` drops it
+        events.append((t, 0, frame))
+        t += 0.005
+    t = 0.1237
+    while t < 0.200:
+        events.append((t, 2, sentences.cesium(rng.uniform(48_000, 52_000),
+                                               rng.randrange(1000, 2000))))
+        t += 0.010
+    for start, channel, frame in sorted(events, key=lambda e: (e[0], e[1])):
+        line.add(channel, start, frame)
+    scenario = SystemScenario(channels=channels, clk_freq=3.6864e6, bursts=line.bursts,
+                              presses=[0.100, 0.240], until=0.300, timestamp=when)
+    scenario.check_quiet(0.015)
+    scenario.recorded_frames()          # refuses frames that end too close together
+    return scenario
