@@ -25,6 +25,7 @@ from ..hw.frame_filter import ChannelKind
 from ..hw.frontend import ChannelConfig
 from . import sentences
 from .reference import Kind, reference_filter
+from .uart_line import encode
 
 
 __all__ = ["Burst", "SystemScenario", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
@@ -133,6 +134,41 @@ class SystemScenario:
 
     def bit_cycles(self, channel):
         return self.clk_freq / self.channels[channel].baud
+
+    def pin_changes(self):
+        """The logger's input pins over the run, as ``(cycle, uart_rx, button)`` at every
+        cycle where one of them changes (``uart_rx`` a bit per channel, idle high;
+        ``button`` high while pressed), starting with their levels at cycle 0."""
+        changes = {}             # cycle -> list of (pin, bit, level)
+        for k in range(len(self.channels)):
+            bit_cycles = self.bit_cycles(k)
+            for burst in self.channel_bursts(k):
+                trace = encode(burst.data, bit_cycles=bit_cycles, lead_idle_bits=1.0,
+                               tail_idle_bits=0.0)
+                cycle = round(burst.start * self.clk_freq) - trace.byte_starts[0]
+                if cycle < 0:
+                    raise ValueError(f"A burst of channel {k} starts before the run")
+                for level, cycles in trace.segments:
+                    changes.setdefault(cycle, []).append(("uart_rx", k, level))
+                    cycle += cycles
+                changes.setdefault(cycle, []).append(("uart_rx", k, 1))
+        for press in self.presses:
+            changes.setdefault(round(press * self.clk_freq), []).append(("button", 0, 1))
+            changes.setdefault(round((press + self.hold) * self.clk_freq), []).append(
+                ("button", 0, 0))
+        uart_rx, button = (1 << len(self.channels)) - 1, 0
+        result = [(0, uart_rx, button)]
+        for cycle in sorted(changes):
+            for pin, bit, level in changes[cycle]:
+                if pin == "uart_rx":
+                    uart_rx = uart_rx & ~(1 << bit) | (level << bit)
+                else:
+                    button = level
+            if cycle == 0:
+                result[0] = (0, uart_rx, button)
+            elif (uart_rx, button) != result[-1][1:]:
+                result.append((cycle, uart_rx, button))
+        return result
 
     def check_quiet(self, margin):
         """Raise unless no line carries a byte within ``margin`` seconds of a press."""

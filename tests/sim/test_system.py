@@ -76,3 +76,31 @@ def test_a_busy_line_at_a_press_is_refused():
 def test_a_burst_on_a_channel_that_does_not_exist_is_refused():
     with pytest.raises(ValueError, match="Burst channel must be in 0..1, not 2"):
         scenario([Burst(2, 0.0, PMAG)])
+
+
+def _line(changes, bit, end):
+    segments = []
+    for (cycle, uart_rx, _), (next_cycle, _, _) in zip(changes, changes[1:] + [(end, 0, 0)]):
+        level = (uart_rx >> bit) & 1
+        if segments and segments[-1][0] == level:
+            segments[-1] = (level, segments[-1][1] + next_cycle - cycle)
+        else:
+            segments.append((level, next_cycle - cycle))
+    return segments
+
+
+def test_pin_changes_carry_every_byte_and_the_presses():
+    from maglog.sim.uart_line import decode
+    s = short_scenario()
+    changes = s.pin_changes()
+    end = round(s.until * s.clk_freq)
+    assert changes[0] == (0, 0b111, 0)
+    for k in range(3):
+        events = decode(_line(changes, k, end), bit_cycles=s.bit_cycles(k))
+        assert bytes(e.data for e in events) == s.channel_bytes(k)
+        assert not any(e.error for e in events)
+    edges = [(cycle, button) for (cycle, _, button), (_, _, before)
+             in zip(changes[1:], changes) if button != before]
+    assert edges == [(round(p * s.clk_freq), 1) if n % 2 == 0 else
+                     (round((s.presses[n // 2] + s.hold) * s.clk_freq), 0)
+                     for n, p in enumerate(x for p in s.presses for x in (p, p))]
