@@ -18,6 +18,13 @@ Decisions beyond the specification's letter:
 * A volume whose clean-shutdown bit is clear mounts (with a note): the power-loss rule
   leaves at most lost clusters behind, and the logger must keep recording.
 * Only the primary FSInfo is kept up to date; the backup (sector 7) is the format-time copy.
+* At most ``fat_cache_sectors`` FAT sectors stay in memory (least recently used evicted
+  first), so a long recording does not accumulate the FAT: a sector with changes not yet on
+  the card is never evicted before the next sync writes it.
+* Data can reach a file two ways: :meth:`LogFile.append` (the writer stores the bytes), or
+  the ring path for data someone else writes (the logger's DMA): :meth:`LogFile.extents`
+  allocates the clusters and says where the sectors go, the caller writes them,
+  :meth:`LogFile.grow` then commits the new size in the same safe order as a sync.
 * Sync writes data sectors, then the changed FAT sectors (all of FAT 1, then FAT 2), then the
   directory entry, then FSInfo. Within each FAT the sector that links a chain already on the
   card to the new clusters goes last, so a cut at any point leaves at worst lost clusters,
@@ -26,19 +33,24 @@ Decisions beyond the specification's letter:
 """
 
 import abc
+import collections
 import datetime as _dt
 import os
 import re
+from dataclasses import dataclass
 
 from ..hw.arch import fat32 as arch
 
 
 __all__ = ["FatError", "FatFullError", "BlockDevice", "ImageFile", "FormatPlan", "plan_format",
-           "format_image", "Volume", "LogFile"]
+           "format_image", "Volume", "LogFile", "Extent", "Extents", "FAT_CACHE_SECTORS"]
 
 SECTOR = arch.SECTOR_BYTES
 _LOG_NAME = re.compile(rb"LOG(\d{5})TXT")
 LOG_MAX_NUMBER = 99999
+#: FAT sectors a mounted volume keeps in memory by default (least recently used go first;
+#: sectors with changes not yet on the card stay until the next sync writes them).
+FAT_CACHE_SECTORS = 8
 
 
 class FatError(Exception):
@@ -447,7 +459,11 @@ def _check_bpb(where, bs, partition_sectors):
 class Volume:
     """A mounted FAT32 volume on a :class:`BlockDevice`; use :meth:`mount`."""
 
-    def __init__(self, device, layout, notes):
+    def __init__(self, device, layout, notes, *, fat_cache_sectors=FAT_CACHE_SECTORS):
+        if (not isinstance(fat_cache_sectors, int) or isinstance(fat_cache_sectors, bool)
+                or fat_cache_sectors < 1):
+            raise ValueError(f"FAT cache size must be a positive number of sectors, not "
+                             f"{fat_cache_sectors!r}")
         self.device = device
         self.layout = layout
         #: What mount found odd but not fatal (dirty bit, implausible FSInfo, ...).
@@ -455,8 +471,12 @@ class Volume:
         self.free_count = None
         self.next_free = None
         self.fsinfo_valid = False
+        self.fat_cache_sectors = fat_cache_sectors
+        #: FAT sectors read from the card so far (a measure of the cache's work).
+        self.fat_reads = 0
         self._fsinfo = None
-        self._fat = {}                  # FAT sector index -> bytearray (FAT 1's view)
+        # FAT sector index -> bytearray (FAT 1's view), least recently used first.
+        self._fat = collections.OrderedDict()
         self._fat_dirty = set()
         self._fresh = set()             # clusters allocated since the last FAT flush
         self._anchors = set()           # FAT sectors linking synced chains to fresh clusters
@@ -466,9 +486,10 @@ class Volume:
     # -- mounting ---------------------------------------------------------------------------
 
     @classmethod
-    async def mount(cls, device):
-        """Find the FAT32 partition, check it, and return the mounted :class:`Volume`.
-        Raises :class:`FatError` naming the problem when the card is not a sane FAT32."""
+    async def mount(cls, device, *, fat_cache_sectors=FAT_CACHE_SECTORS):
+        """Find the FAT32 partition, check it, and return the mounted :class:`Volume`
+        (keeping at most ``fat_cache_sectors`` FAT sectors in memory). Raises
+        :class:`FatError` naming the problem when the card is not a sane FAT32."""
         mbr = await device.read_block(0)
         index, kind, start, sectors = _find_partition(mbr)
         where = f"partition {index + 1} (sector {start})"
@@ -477,7 +498,7 @@ class Volume:
         boot = await device.read_block(start)
         _check_partition_type(index, kind, boot)
         _check_bpb(f"{where} boot sector", boot, sectors)
-        volume = cls(device, _Layout(start, boot), [])
+        volume = cls(device, _Layout(start, boot), [], fat_cache_sectors=fat_cache_sectors)
         await volume._check_backup_boot(boot)
         await volume._read_fsinfo()
         await volume._check_fat_head()
@@ -533,12 +554,32 @@ class Volume:
 
     # -- the FAT ----------------------------------------------------------------------------
 
+    @property
+    def cached_fat_sectors(self):
+        """How many FAT sectors are in memory now."""
+        return len(self._fat)
+
     async def _fat_sector(self, index):
         sector = self._fat.get(index)
         if sector is None:
             sector = bytearray(await self.device.read_block(self.layout.fat_start + index))
+            self.fat_reads += 1
             self._fat[index] = sector
+            self._trim_fat_cache(keep=index)
+        else:
+            self._fat.move_to_end(index)
         return sector
+
+    def _trim_fat_cache(self, keep=None):
+        """Evict least recently used clean FAT sectors down to the bound; changed sectors
+        wait for the next flush, and ``keep`` (the sector in use) stays."""
+        excess = len(self._fat) - self.fat_cache_sectors
+        for index in list(self._fat):
+            if excess <= 0:
+                break
+            if index != keep and index not in self._fat_dirty:
+                del self._fat[index]
+                excess -= 1
 
     async def _fat_entry(self, cluster):
         index, slot = divmod(cluster, arch.FAT_ENTRIES_PER_SECTOR)
@@ -569,9 +610,7 @@ class Volume:
         self._fat_dirty.clear()
         self._fresh.clear()
         self._anchors.clear()
-        # Clean sectors need not stay in memory; keep the one allocation continues in.
-        keep = self.next_free // arch.FAT_ENTRIES_PER_SECTOR
-        self._fat = {index: sector for index, sector in self._fat.items() if index == keep}
+        self._trim_fat_cache()
 
     async def _set_clean_bit(self, clean):
         fat1 = await self._fat_entry(1)
@@ -715,49 +754,96 @@ class Volume:
             self._dirty_marked = False
 
 
+@dataclass(frozen=True)
+class Extent:
+    """``count`` consecutive sectors of a file from its sector ``file_sector`` on, stored
+    from block ``lba`` on."""
+    lba: int
+    file_sector: int
+    count: int
+
+
+@dataclass(frozen=True)
+class Extents:
+    """Where the sectors of a file's growth go (:meth:`LogFile.extents`): ``runs`` of
+    contiguous blocks, in file order, covering the file up to ``size`` bytes. ``size`` is
+    less than the size asked for only when the card is full: the file then ends at the end
+    of its last cluster."""
+    runs: tuple
+    size: int
+
+    @property
+    def sectors(self):
+        return sum(run.count for run in self.runs)
+
+
 class LogFile:
-    """An open log file: :meth:`append` data, :meth:`sync` it to the card, :meth:`close`."""
+    """An open log file. Host data: :meth:`append`, :meth:`sync`. Data written by someone
+    else (the DMA from the ring): :meth:`extents`, then :meth:`grow`. Then :meth:`close`."""
 
     def __init__(self, volume, name, slot, entry):
         self.volume = volume
         self.name = name
+        #: Bytes of the file: appended whole sectors, or the size :meth:`grow` committed.
         self.size = 0
         self._slot = slot               # (lba, index) of the directory entry
         self._entry = entry
         self._first = 0
-        self._cluster = 0               # the cluster the file's end lies in
-        self._tail = bytearray()        # bytes of the last, partial sector
+        # The file's clusters from its cluster number `_base` on: the one its end lies in
+        # and any allocated after it (earlier ones are never written again).
+        self._clusters = []
+        self._base = 0
+        self._tail = bytearray()        # bytes of the last, partial sector (append path)
         self._closed = False
 
     @property
     def first_cluster(self):
         return self._first
 
-    def _tail_lba(self):
-        """The sector the byte at offset ``size`` of the file lies in."""
-        layout = self.volume.layout
-        sector_in_cluster = (self.size % layout.cluster_bytes) // SECTOR
-        return layout.cluster_lba(self._cluster) + sector_in_cluster
+    @property
+    def closed(self):
+        return self._closed
 
-    async def _next_cluster(self):
-        cluster = await self.volume._allocate(self._cluster)
-        if not self._first:
-            self._first = cluster
-        self._cluster = cluster
+    def _check_open(self):
+        if self._closed:
+            raise FatError(f"{self.name} is closed")
+
+    async def _cluster_at(self, index):
+        """The cluster holding the file's cluster number ``index``, allocating and linking
+        clusters up to it. Raises :class:`FatFullError`."""
+        while self._base + len(self._clusters) <= index:
+            previous = self._clusters[-1] if self._clusters else 0
+            cluster = await self.volume._allocate(previous)
+            if not self._first:
+                self._first = cluster
+            self._clusters.append(cluster)
+        return self._clusters[index - self._base]
+
+    def _forget_before(self, index):
+        """Drop the clusters before the file's cluster number ``index``, keeping the last
+        one (the next allocation links after it)."""
+        drop = min(index - self._base, len(self._clusters) - 1)
+        if drop > 0:
+            del self._clusters[:drop]
+            self._base += drop
+
+    async def _sector_lba(self, file_sector):
+        layout = self.volume.layout
+        index, offset = divmod(file_sector, layout.sectors_per_cluster)
+        return layout.cluster_lba(await self._cluster_at(index)) + offset
 
     async def append(self, data):
         """Add ``data`` to the file: whole sectors are written now, the partial last one at
         the next :meth:`sync`. Raises :class:`FatFullError` (with ``written``) when the card
         fills; what fitted is kept."""
-        if self._closed:
-            raise FatError(f"{self.name} is closed")
+        self._check_open()
         await self.volume._mark_dirty()
         view, written = memoryview(bytes(data)), 0
         cluster_bytes = self.volume.layout.cluster_bytes
         while written < len(view):
             if self.size % cluster_bytes == 0 and not self._tail:
                 try:
-                    await self._next_cluster()
+                    await self._cluster_at(self.size // cluster_bytes)
                 except FatFullError as full:
                     raise FatFullError(f"{full}: {self.name} took {written} of {len(view)} "
                                        f"bytes", written) from None
@@ -765,18 +851,72 @@ class LogFile:
             self._tail += view[written:written + take]
             written += take
             if len(self._tail) == SECTOR:
-                await self.volume.device.write_block(self._tail_lba(), bytes(self._tail))
+                lba = await self._sector_lba(self.size // SECTOR)
+                await self.volume.device.write_block(lba, bytes(self._tail))
                 self._tail.clear()
                 self.size += SECTOR
         return written
+
+    async def extents(self, new_size):
+        """Allocate the clusters for the file to reach ``new_size`` bytes and return the
+        :class:`Extents` of its sectors from the one its end lies in (a partial last sector
+        is written again, longer) up to ``new_size``. Nothing is written: the caller writes
+        the data there, then calls :meth:`grow`. On a full card the extents stop at the last
+        cluster that could be allocated (``size`` says where)."""
+        self._check_open()
+        if self._tail:
+            raise FatError(f"{self.name} holds {len(self._tail)} appended bytes not yet "
+                           f"synced: sync before handing the file to the ring path")
+        if not isinstance(new_size, int) or new_size < self.size:
+            raise ValueError(f"New size must be an integer of at least {self.size} bytes, "
+                             f"not {new_size!r}")
+        await self.volume._mark_dirty()
+        layout = self.volume.layout
+        per_cluster = layout.sectors_per_cluster
+        sector, end = self.size // SECTOR, _ceil_div(new_size, SECTOR)
+        runs = []
+        while sector < end:
+            index, offset = divmod(sector, per_cluster)
+            try:
+                cluster = await self._cluster_at(index)
+            except FatFullError:
+                break
+            lba = layout.cluster_lba(cluster) + offset
+            count = min(per_cluster - offset, end - sector)
+            if runs and runs[-1].lba + runs[-1].count == lba:
+                runs[-1] = Extent(runs[-1].lba, runs[-1].file_sector, runs[-1].count + count)
+            else:
+                runs.append(Extent(lba, sector, count))
+            sector += count
+        return Extents(tuple(runs), min(new_size, max(sector * SECTOR, self.size)))
+
+    async def grow(self, new_size, timestamp):
+        """Commit ``new_size`` (the ``size`` of the last :meth:`extents`, whose sectors the
+        caller has written): the FAT sectors (every FAT), the directory entry (size, first
+        cluster, write time from ``timestamp``), then FSInfo, as :meth:`sync` does. Call it
+        only once the data is on the card: it makes the file point at it."""
+        self._check_open()
+        if self._tail:
+            raise FatError(f"{self.name} holds {len(self._tail)} appended bytes not yet "
+                           f"synced: sync before handing the file to the ring path")
+        cluster_bytes = self.volume.layout.cluster_bytes
+        allocated = self._base + len(self._clusters)
+        if (not isinstance(new_size, int) or new_size < self.size
+                or _ceil_div(new_size, cluster_bytes) != allocated):
+            raise ValueError(f"New size must be at least {self.size} bytes and end in the "
+                             f"file's last allocated cluster (cluster {allocated} of "
+                             f"{cluster_bytes} bytes), not {new_size!r}")
+        self.size = new_size
+        await self.sync(timestamp)
 
     async def sync(self, timestamp):
         """Make the file on the card hold everything appended so far, in the safe order:
         the partial data sector, the FAT sectors (every FAT), the directory entry (size,
         first cluster, write time from ``timestamp``), then FSInfo."""
+        self._check_open()
         volume = self.volume
         if self._tail:
-            await volume.device.write_block(self._tail_lba(),
+            await volume.device.write_block(await self._sector_lba(self.size // SECTOR),
                                             bytes(self._tail.ljust(SECTOR, b"\0")))
         await volume._flush_fat()
         date, time = fat_date_time(timestamp)
@@ -788,6 +928,7 @@ class LogFile:
         _put32(self._entry, arch.DIR_FILE_SIZE, self.size + len(self._tail))
         await self._write_entry()
         await volume._write_fsinfo()
+        self._forget_before(self.size // volume.layout.cluster_bytes)
 
     async def _write_entry(self):
         lba, index = self._slot

@@ -613,3 +613,180 @@ def test_timestamp_is_a_datetime_or_a_date_time_pair():
     assert date == (44 << 9) | (5 << 5) | 6 and time == (9 << 11) | (30 << 5) | 22
     with pytest.raises(FatError, match="Year 1979"):
         fat32.fat_date_time(dt.datetime(1979, 12, 31))
+
+
+# -- The ring path: data written by someone else (the DMA) ------------------------------------
+
+async def dma_flush(log, stream, committed, timestamp=T1):
+    """Do what the logger's flush does with ``stream[:committed]``: ask the file where its
+    sectors from the tail sector on go, write them as the DMA writes them from the ring (a
+    partial last sector padded with zeros), then grow the file. Returns the extents."""
+    extents = await log.extents(committed)
+    for run in extents.runs:
+        for k in range(run.count):
+            sector = run.file_sector + k
+            end = min((sector + 1) * 512, committed)
+            await log.volume.device.write_block(
+                run.lba + k, stream[sector * 512:end].ljust(512, b"\0"))
+    await log.grow(extents.size, timestamp)
+    return extents
+
+
+def check_runs(runs, chain, sectors_per_cluster, first_sector, end_sector):
+    """The runs are in file order, each contiguous on the card, cover the sectors
+    ``first_sector .. end_sector - 1`` once, and lie where the file's chain puts them."""
+    expected, sector = [], first_sector
+    for run in runs:
+        assert run.file_sector == sector
+        for k in range(run.count):
+            index, offset = divmod(sector + k, sectors_per_cluster)
+            expected.append((chain[index], offset, run.lba + k))
+        sector += run.count
+    assert sector == end_sector
+    return expected
+
+
+@pytest.mark.parametrize("size, cluster_bytes", [(512 * MiB, 4096), (2200 * MiB, None)])
+def test_ring_path_across_cluster_and_fat_sector_boundaries(tmp_path, fat_tools, external,
+                                                            size, cluster_bytes):
+    # Flush sizes that end mid-sector, on a sector, on a cluster; another file appended
+    # between flushes makes the chain fragmented, so some flushes need several runs. Past
+    # 128 clusters the chain crosses into the FAT's second sector.
+    image = tmp_path / "card.img"
+    plan = format_image(image, size, cluster_bytes=cluster_bytes)
+    spc = plan.sectors_per_cluster
+    cluster = spc * 512
+    total = 130 * cluster + 1000
+    stream = payload(total, 5)
+    other = payload(cluster * 3 + 17, 6)
+    steps = [100, 512, 700, cluster, cluster + 1, 3 * cluster - 5, 3 * cluster + 512,
+             40 * cluster + 100, 129 * cluster, total]
+
+    async def work(volume):
+        log = await volume.create_log(T0)
+        side = await volume.create_log(T0)
+        seen, multi = [], 0
+        synced = 0
+        for n, committed in enumerate(steps):
+            extents = await dma_flush(log, stream, committed)
+            assert extents.size == committed == log.size
+            multi += len(extents.runs) > 1
+            seen.append((synced // 512, -(-committed // 512), extents.runs))
+            synced = committed
+            if n % 3 == 1:
+                await side.append(other[:cluster])      # takes the next free cluster
+                await side.sync(T1)
+        await side.close(T1)
+        await log.close(T1)
+        await volume.close()
+        return log.name, side.name, seen, multi
+
+    name, side_name, seen, multi = run(mounted(image, work))
+    assert multi >= 2                                   # fragmented: several runs a flush
+    judge(image, {name: stream, side_name: other[:cluster] * 3}, tmp_path, fat_tools,
+          external)
+    with open_card(image) as card:
+        chain = card.clusters(name)
+        data_lba = card.cluster_offset(2) // 512
+    assert len(chain) == -(-total // cluster) and chain[-1] // 128 >= 1
+    for first, end, runs in seen:
+        for cluster_number, offset, lba in check_runs(runs, chain, spc, first, end):
+            assert lba == data_lba + (cluster_number - 2) * spc + offset
+
+
+def test_ring_path_timestamp_and_refusals(tmp_path):
+    image = tmp_path / "card.img"
+    format_image(image, 64 * MiB, cluster_bytes=512)
+
+    async def work(volume):
+        log = await volume.create_log(T0)
+        with pytest.raises(ValueError, match=r"^New size must be an integer of at least 0 "
+                                             r"bytes, not -1$"):
+            await log.extents(-1)
+        extents = await log.extents(1500)               # three 512-byte clusters
+        with pytest.raises(ValueError, match="end in the file's last allocated cluster"):
+            await log.grow(600, T1)                     # would leave a cluster past its end
+        await log.grow(extents.size, T1)
+        await log.append(b"host")
+        with pytest.raises(FatError, match="appended bytes not yet synced"):
+            await log.extents(2000)
+        await log.close(T1)
+        with pytest.raises(FatError, match="is closed"):
+            await log.extents(2000)
+        await volume.close()
+        return log.name
+
+    name = run(mounted(image, work))
+    with open_card(image) as card:
+        assert card.stat(name).mtime == T1 and card.stat(name).size == 1504
+
+
+def test_ring_path_card_full(tmp_path, fat_tools, external):
+    image = tmp_path / "card.img"
+    plan = format_image(image, 40 * MiB, cluster_bytes=512)
+    capacity = (plan.cluster_count - 1) * 512               # all but the root cluster
+    stream = payload(capacity + 5000, 3)
+
+    async def fill(volume):
+        log = await volume.create_log(T0)
+        await dma_flush(log, stream, capacity - 700)
+        extents = await dma_flush(log, stream, len(stream) - 10)
+        await log.close(T1)
+        await volume.close()
+        return log.name, extents.size, volume.free_count
+
+    name, fitted, free = run(mounted(image, fill))
+    assert fitted == capacity and free == 0
+    assert fsinfo(image)[0] == 0
+    assert fsck_findings(fat_tools["fsck.fat"], image, tmp_path) == []
+    assert dict(read_logs(image))[name] == stream[:capacity]
+    assert mtype(external, image, name) == stream[:capacity]
+
+
+def test_fat_cache_keeps_at_most_n_sectors(tmp_path, fat_tools, external):
+    # 512-byte clusters: 128 FAT entries a sector, so 700 clusters cross 6 FAT sectors.
+    image = tmp_path / "card.img"
+    format_image(image, 64 * MiB, cluster_bytes=512)
+    stream = payload(700 * 512 + 300, 4)
+
+    async def work(volume):
+        log = await volume.create_log(T0)
+        sizes = []
+        for committed in range(5000, 300 * 512, 5000):
+            await dma_flush(log, stream, committed)
+            sizes.append(volume.cached_fat_sectors)
+        await dma_flush(log, stream, len(stream))       # 4 FAT sectors changed at once
+        sizes.append(volume.cached_fat_sectors)
+        await log.close(T1)
+        await volume.close()
+        return log.name, sizes, volume.fat_reads
+
+    class Sampler(ImageFile):
+        """Samples the cache's size at every block access."""
+        volume, samples = None, []
+
+        async def read_block(self, lba):
+            if self.volume is not None:
+                self.samples.append(self.volume.cached_fat_sectors)
+            return await super().read_block(lba)
+
+    with Sampler(image) as device:
+        volume = run(Volume.mount(device, fat_cache_sectors=2))
+        device.volume = volume
+        name, sizes, reads = run(work(volume))
+    assert max(sizes) == 2                  # after each sync
+    # Between syncs sectors with unwritten changes may add to the bound.
+    assert max(device.samples) <= 5
+    assert reads >= 6                       # each FAT sector was read at least once
+    judge(image, {name: stream}, tmp_path, fat_tools, external)
+    # An unknown free count is recounted through every FAT sector at mount: the cache
+    # still holds two.
+    offset, _ = partition(image)
+    patch(image, offset + 512 + 488, (0xFFFFFFFF).to_bytes(4, "little"))
+    with ImageFile(image) as device:
+        volume = run(Volume.mount(device, fat_cache_sectors=2))
+        assert volume.fat_reads > 500 and volume.cached_fat_sectors == 2
+    with ImageFile(image) as device:
+        with pytest.raises(ValueError, match=r"^FAT cache size must be a positive number of "
+                                             r"sectors, not 0$"):
+            run(Volume.mount(device, fat_cache_sectors=0))
