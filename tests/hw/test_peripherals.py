@@ -253,6 +253,22 @@ def test_watchdog_fires_once_after_the_timeout_without_kicks():
     assert status == {"reset_cause": 1}
 
 
+def test_after_firing_the_watchdog_counts_afresh_when_enabled_again():
+    async def script(ctx, bus, regs, fires):
+        control = regs["control"]
+        await bus.write(control.address, control.encode(enable=1, timeout_ms=3))
+        await bus.wait(0.010)
+        await bus.write(control.address, control.encode(enable=1, timeout_ms=4))
+        again = bus.now() * CLK
+        await bus.wait(0.010)
+        return again, await read(bus, regs, "status")
+
+    (again, status), fires = run_watchdog(script)
+    assert len(fires) == 2
+    assert 4 * MS <= fires[1] - again <= 4 * MS + 3
+    assert status == {"reset_cause": 1}
+
+
 def test_kicks_keep_the_watchdog_quiet_and_it_fires_after_the_last():
     async def script(ctx, bus, regs, fires):
         await bus.write(regs["control"].address, regs["control"].encode(enable=1, timeout_ms=5))
