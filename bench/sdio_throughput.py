@@ -75,7 +75,7 @@ def measure(blocks, *, sys_clock_hz, busy_clocks, seed):
         marks["end"] = len(recorder.edges)
 
     async def card_side(ctx):
-        await run_card(ctx, host, recorder)
+        await run_card(ctx, host.sd, recorder)
 
     async def cycle_count(ctx):
         async for _ in ctx.tick():
@@ -83,8 +83,8 @@ def measure(blocks, *, sys_clock_hz, busy_clocks, seed):
 
     async def dat_watch(ctx):
         while True:
-            await ctx.changed(host.sd_dat_oe)
-            recorder.host_dat_oe = ctx.get(host.sd_dat_oe)
+            await ctx.changed(host.sd.dat_oe)
+            recorder.host_dat_oe = ctx.get(host.sd.dat_oe)
 
     start = time.perf_counter()
     run_simulation(host, [firmware], background=[card_side, dat_watch, cycle_count, port.source, port.sink],

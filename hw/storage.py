@@ -7,24 +7,12 @@ from amaranth.lib.wiring import In, Out
 from .dma import Dma
 from .frame_fifo import FrameByte
 from .ringbuffer import RingBuffer
-from .sdio.host import SdioHost
+from .sdio.host import SdioHost, sd_pins_signature
 from .sdram import SdramController, sdram_pins_signature
 from .soc import csr
 
 
 __all__ = ["Storage", "sd_pins_signature"]
-
-
-def sd_pins_signature():
-    return wiring.Signature({
-        "clk":    Out(1),
-        "cmd_o":  Out(1, init=1),
-        "cmd_oe": Out(1),
-        "cmd_i":  In(1, init=1),
-        "dat_o":  Out(4, init=0xF),
-        "dat_oe": Out(1),
-        "dat_i":  In(4, init=0xF),
-    })
 
 
 class Storage(wiring.Component):
@@ -86,12 +74,5 @@ class Storage(wiring.Component):
         wiring.connect(m, dma.sd_i, sdio.i)
         wiring.connect(m, sdio.o, dma.sd_o)
 
-        sd = self.sd
-        m.d.comb += [
-            sd.clk.eq(sdio.sd_clk),
-            sd.cmd_o.eq(sdio.sd_cmd_o), sd.cmd_oe.eq(sdio.sd_cmd_oe),
-            sdio.sd_cmd_i.eq(sd.cmd_i),
-            sd.dat_o.eq(sdio.sd_dat_o), sd.dat_oe.eq(sdio.sd_dat_oe),
-            sdio.sd_dat_i.eq(sd.dat_i),
-        ]
+        wiring.connect(m, sdio.sd, wiring.flipped(self.sd))
         return m

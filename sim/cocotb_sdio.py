@@ -3,7 +3,7 @@ SD host's generated Verilog against the card model.
 
 Backends: :class:`CsrBus` (the firmware's register bus on the CSR port), :class:`BlockPort`
 (the host's byte streams), :func:`run_card` (the card model on the pins: it samples at each
-rising edge of ``sd_clk`` and drives after the falling edge, as a default-speed card).
+rising edge of ``sd__clk`` and drives after the falling edge, as a default-speed card).
 Python runs per register access, per byte and per SD clock edge, never per system clock.
 
 The stimulus's ``sys_clock_hz`` is the one figure for the system clock: the simulated clock
@@ -154,25 +154,25 @@ async def run_card(dut, card, meter=None):
     :class:`ClockMeter`) sees every rising edge of the SD clock."""
     card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
     while True:
-        await RisingEdge(dut.sd_clk)
+        await RisingEdge(dut.sd__clk)
         if meter is not None:
             meter.rising_edge(card)
         await ReadOnly()
-        host_cmd_oe = int(dut.sd_cmd_oe.value)
-        host_dat_oe = int(dut.sd_dat_oe.value)
+        host_cmd_oe = int(dut.sd__cmd_oe.value)
+        host_dat_oe = int(dut.sd__dat_oe.value)
         if host_cmd_oe and card_cmd_oe:
             card.report("bus contention on CMD")
         if host_dat_oe and card_dat_oe:
             card.report("bus contention on DAT")
-        cmd = int(dut.sd_cmd_o.value) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
+        cmd = int(dut.sd__cmd_o.value) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
         if host_dat_oe:
-            dat = int(dut.sd_dat_o.value)
+            dat = int(dut.sd__dat_o.value)
         else:
             dat = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
         card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
-        await FallingEdge(dut.sd_clk)
-        dut.sd_cmd_i.value = card_cmd if card_cmd_oe else 1
-        dut.sd_dat_i.value = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
+        await FallingEdge(dut.sd__clk)
+        dut.sd__cmd_i.value = card_cmd if card_cmd_oe else 1
+        dut.sd__dat_i.value = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
 
 
 @cocotb.test()
@@ -189,8 +189,8 @@ async def write_read_back(dut):
         stimulus = json.load(f)
     sys_clock_hz = stimulus["sys_clock_hz"]
     Clock(dut.clk, round(1e12 / sys_clock_hz), unit="ps", impl="gpi").start()
-    dut.sd_cmd_i.value = 1
-    dut.sd_dat_i.value = 0xF
+    dut.sd__cmd_i.value = 1
+    dut.sd__dat_i.value = 0xF
     dut.bus__r_stb.value = 0
     dut.bus__w_stb.value = 0
     dut.rst.value = 1

@@ -99,25 +99,26 @@ class StreamBlockPort(BlockPort):
         return data
 
 
-async def run_card(ctx, host, card):
-    """Run an :class:`~maglog.sim.models.sdcard.SdCard` on the host's pins: at each rising
-    edge of ``sd_clk`` the card sees the bus levels (host drive, card drive or pull-up) and
-    sets what it drives until the next edge. Both sides driving a line is reported to the
-    card model as a protocol error."""
+async def run_card(ctx, pins, card):
+    """Run an :class:`~maglog.sim.models.sdcard.SdCard` on the SD pins ``pins`` (an
+    interface of :func:`~maglog.hw.sdio.host.sd_pins_signature`, as ``SdioHost().sd`` or
+    ``Storage(...).sd``): at each rising edge of ``clk`` the card sees the bus levels (host
+    drive, card drive or pull-up) and sets what it drives until the next edge. Both sides
+    driving a line is reported to the card model as a protocol error."""
     card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
     while True:
-        await ctx.posedge(host.sd_clk)
-        host_cmd_oe = ctx.get(host.sd_cmd_oe)
-        host_dat_oe = ctx.get(host.sd_dat_oe)
+        await ctx.posedge(pins.clk)
+        host_cmd_oe = ctx.get(pins.cmd_oe)
+        host_dat_oe = ctx.get(pins.dat_oe)
         if host_cmd_oe and card_cmd_oe:
             card.report("bus contention on CMD")
         if host_dat_oe and card_dat_oe:
             card.report("bus contention on DAT")
-        cmd = ctx.get(host.sd_cmd_o) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
+        cmd = ctx.get(pins.cmd_o) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
         if host_dat_oe:
-            dat = ctx.get(host.sd_dat_o)
+            dat = ctx.get(pins.dat_o)
         else:
             dat = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
         card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
-        ctx.set(host.sd_cmd_i, card_cmd if card_cmd_oe else 1)
-        ctx.set(host.sd_dat_i, (card_dat & card_dat_oe) | (0xF & ~card_dat_oe))
+        ctx.set(pins.cmd_i, card_cmd if card_cmd_oe else 1)
+        ctx.set(pins.dat_i, (card_dat & card_dat_oe) | (0xF & ~card_dat_oe))

@@ -10,8 +10,7 @@ every block, and the number of blocks accepted is always known.
 from dataclasses import dataclass
 
 from ..hw.arch import sd as arch
-from ..hw.sdio.cmd import ResponseKind
-from ..hw.sdio.host import DataPhase
+from ..hw.arch.sd import DataPhase, ResponseKind
 from .bus import BusTimeout
 
 
@@ -54,12 +53,6 @@ _KIND = {
     arch.Response.R3: ResponseKind.OCR, arch.Response.R2: ResponseKind.LONG,
 }
 
-#: Identification clock (PLSS §4.2: at most 400 kHz) and data transfer clock (25 MHz).
-IDENT_CLOCK_HZ = 400_000
-INIT_CLOCKS = 74                    # PLSS §6.4.1: 74 clocks after power-up, CMD high
-ACMD41_LIMIT_S = 1.0                # PLSS §4.2.3: initialisation within 1 s
-IF_COND_PATTERN = 0xAA
-IF_COND_VOLTAGE = 0x1               # 2.7-3.6 V
 CMD_RETRIES = 3
 WRITE_RETRIES = 2
 #: After a failed write the card may still program (prg) the block whose busy outlasted the
@@ -148,8 +141,8 @@ class SdCardDriver:
         for attempt in range(tries):
             await self.bus.write(regs["argument"].address, argument)
             await self.bus.write(regs["command"].address, regs["command"].encode(
-                index=index, kind=_KIND[response].value,
-                r1b=int(response == arch.Response.R1B), data=data.value))
+                index=index, kind=_KIND[response],
+                r1b=int(response == arch.Response.R1B), data=data))
             status = await self._wait_idle("cmd_busy", self._clocks_to_s(4 * arch.N_CR_MAX
                                                                            + 2 * arch.R2_BITS))
             if response == arch.Response.NONE:
@@ -202,17 +195,18 @@ class SdCardDriver:
     async def initialise(self):
         """Power-up clocks, CMD0, CMD8, ACMD41 (HCS) until ready, CMD2, CMD3, CMD7, ACMD6,
         then the 25 MHz clock. Returns :class:`CardInfo`."""
-        await self.set_clock(IDENT_CLOCK_HZ, run=True)
-        await self.bus.wait(self._clocks_to_s(INIT_CLOCKS + 2))
-        await self.set_clock(IDENT_CLOCK_HZ, run=False)
+        await self.set_clock(arch.IDENT_CLOCK_HZ, run=True)
+        await self.bus.wait(self._clocks_to_s(arch.INIT_CLOCKS + 2))
+        await self.set_clock(arch.IDENT_CLOCK_HZ, run=False)
         await self.command(arch.Command.GO_IDLE_STATE, 0, arch.Response.NONE)
         try:
-            echo = await self.command(arch.Command.SEND_IF_COND,
-                                      IF_COND_VOLTAGE << 8 | IF_COND_PATTERN, arch.Response.R7)
+            echo = await self.command(arch.Command.SEND_IF_COND, arch.IF_COND_ARGUMENT,
+                                      arch.Response.R7)
         except SdTimeout:
             raise SdNoCard("no card answers CMD8 (a version 1 card or no card)") from None
-        if echo & 0xFFF != IF_COND_VOLTAGE << 8 | IF_COND_PATTERN:
-            raise SdCardError(f"CMD8 echo {echo & 0xFFF:#05x} does not match")
+        if echo & arch.IF_COND_ECHO_MASK != arch.IF_COND_ARGUMENT:
+            raise SdCardError(f"CMD8 echo {echo & arch.IF_COND_ECHO_MASK:#05x} does not "
+                              f"match {arch.IF_COND_ARGUMENT:#05x}")
         start = self.bus.now()
         while True:
             ocr = await self.app_command(arch.AppCommand.SD_SEND_OP_COND,
@@ -220,8 +214,9 @@ class SdCardDriver:
                                          arch.Response.R3)
             if ocr & arch.OCR_POWER_UP_DONE:
                 break
-            if self.bus.now() - start > ACMD41_LIMIT_S:
-                raise SdTimeout(f"the card did not finish power-up within {ACMD41_LIMIT_S} s")
+            if self.bus.now() - start > arch.ACMD41_LIMIT_S:
+                raise SdTimeout(f"the card did not finish power-up within "
+                                f"{arch.ACMD41_LIMIT_S} s")
             await self.bus.wait(1e-3)
         cid = await self.command(arch.Command.ALL_SEND_CID, 0, arch.Response.R2)
         rca = (await self.command(arch.Command.SEND_RELATIVE_ADDR, 0, arch.Response.R6)) >> 16
@@ -230,7 +225,8 @@ class SdCardDriver:
         if not self.info.high_capacity:
             raise SdCardError("standard-capacity (byte-addressed) cards are not supported")
         await self.command(arch.Command.SELECT_CARD, rca << 16, arch.Response.R1B)
-        await self.app_command(arch.AppCommand.SET_BUS_WIDTH, 0b10, arch.Response.R1)
+        await self.app_command(arch.AppCommand.SET_BUS_WIDTH, arch.BUS_WIDTH_4,
+                               arch.Response.R1)
         await self.set_clock(arch.DEFAULT_SPEED_HZ)
         return self.info
 

@@ -37,6 +37,28 @@ R2_CONTENT_BITS = 128
 R2_CRC_FIRST = 8
 R2_CRC_LAST = 128
 
+class ResponseKind(_enum.IntEnum):
+    """What the host's CMD engine expects after a command: the field ``kind`` of the SD
+    host's ``command`` register (hw/sdio/cmd.py takes its values from here).
+
+    Ref: PLSS §4.9 (responses R1, R1b, R2, R3, R6, R7).
+    """
+    NONE   = 0   # CMD0: no response
+    SHORT  = 1   # R1, R1b, R6, R7: 48 bits, CRC7 and command index checked
+    OCR    = 2   # R3: 48 bits, index field and CRC are all ones, not checked
+    LONG   = 3   # R2: 136 bits, CID/CSD with its own CRC7 over bits 127..8
+
+
+class DataPhase(_enum.IntEnum):
+    """What the host's DAT lines do after a command: the field ``data`` of the SD host's
+    ``command`` register (hw/sdio/host.py takes its values from here). A host convention,
+    not a PLSS term: CMD24/CMD25 write blocks after their response (PLSS §4.3.4), CMD17 reads
+    one (PLSS §4.3.3)."""
+    NONE  = 0
+    WRITE = 1    # after a good response, write `blocks` blocks from the host's `i` stream
+    READ  = 2    # read one block to the host's `o` stream; armed when the command starts
+
+
 # Ref: PLSS §4.12.4 "Timing Values": N_CR (command end to response) 2..64 clocks; N_CC and
 #      N_RC (response end to next command) at least 8 clocks.
 N_CR_MAX = 64
@@ -204,7 +226,11 @@ IF_COND_VHS_SHIFT = 8
 IF_COND_VHS_MASK = 0xF << IF_COND_VHS_SHIFT
 IF_COND_VHS_2V7_3V6 = 0b0001
 IF_COND_PATTERN_MASK = 0xFF
-IF_COND_ARGUMENT = (IF_COND_VHS_2V7_3V6 << IF_COND_VHS_SHIFT) | 0xAA
+#: The check pattern the host sends (PLSS §4.3.13 recommends 10101010b).
+IF_COND_PATTERN = 0xAA
+IF_COND_ARGUMENT = (IF_COND_VHS_2V7_3V6 << IF_COND_VHS_SHIFT) | IF_COND_PATTERN
+#: The bits of R7 that echo the argument: VHS and the check pattern.
+IF_COND_ECHO_MASK = IF_COND_VHS_MASK | IF_COND_PATTERN_MASK
 
 # Ref: PLSS §4.7.4 ACMD6 argument bits 1..0: 00 = 1 bit, 10 = 4 bits.
 BUS_WIDTH_1 = 0b00
@@ -226,3 +252,9 @@ N_ST = 2
 # Ref: PLSS §6.4.1.1 "Power Up Time of Host": at least 74 clocks, CMD high, before the first
 #      command.
 INIT_CLOCKS = 74
+# Ref: PLSS §4.2 (card identification mode) and the default-speed bus timing (f_OD): the
+#      clock is at most 400 kHz until the card has left identification mode (after CMD3).
+IDENT_CLOCK_HZ = 400_000
+# Ref: PLSS §4.2.3 "Card Initialization and Identification Process": the card finishes its
+#      initialisation (OCR busy bit set in the ACMD41 answer) within 1 s of the first ACMD41.
+ACMD41_LIMIT_S = 1.0

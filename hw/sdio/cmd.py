@@ -12,14 +12,15 @@ __all__ = ["ResponseKind", "CmdStatus", "CmdEngine"]
 
 
 class ResponseKind(enum.Enum, shape=2):
-    """What follows a command on the CMD line.
+    """What follows a command on the CMD line; values from :class:`~maglog.hw.arch.sd.
+    ResponseKind` (the firmware's view of the same field).
 
     Ref: PLSS §4.9 (responses R1, R1b, R2, R3, R6, R7).
     """
-    NONE   = 0   # CMD0
-    SHORT  = 1   # R1, R1b, R6, R7: 48 bits, CRC7 and command index checked
-    OCR    = 2   # R3: 48 bits, index field and CRC are all ones, not checked
-    LONG   = 3   # R2: 136 bits, CID/CSD with its own CRC7 over bits 127..8
+    NONE   = arch.ResponseKind.NONE.value    # CMD0
+    SHORT  = arch.ResponseKind.SHORT.value   # R1, R1b, R6, R7: CRC7 and index checked
+    OCR    = arch.ResponseKind.OCR.value     # R3: index field and CRC all ones, not checked
+    LONG   = arch.ResponseKind.LONG.value    # R2: 136 bits, CID/CSD with its own CRC7
 
 
 class CmdStatus(data.Struct):

@@ -11,17 +11,38 @@ from .cmd import CmdEngine, CmdStatus, ResponseKind
 from .dat import DatReader, DatWriter, ReadStatus, WriteStatus
 
 
-__all__ = ["DataPhase", "SdioHost"]
+__all__ = ["DataPhase", "sd_pins_signature", "SdioHost"]
 
+#: Address bits of the register window (words of 32 bits, byte addresses).
+ADDR_WIDTH = 4
 #: Width of the clock divider: 400 kHz from up to 100 MHz needs a half period of 125 cycles.
 DIVISOR_BITS = 10
 
 
+def sd_pins_signature():
+    """The SD card's pins in 4-bit SD mode, as the host drives them (``Out``: host to card).
+
+    Each bidirectional line is split into output, output enable and input, as an FPGA's
+    I/O buffer takes it; an undriven line reads high (the bus's pull-ups). ``dat_oe``
+    enables all four DAT lines together.
+    """
+    return wiring.Signature({
+        "clk":    Out(1),
+        "cmd_o":  Out(1, init=1),
+        "cmd_oe": Out(1),
+        "cmd_i":  In(1, init=1),
+        "dat_o":  Out(4, init=0xF),
+        "dat_oe": Out(1),
+        "dat_i":  In(4, init=0xF),
+    })
+
+
 class DataPhase(enum.Enum, shape=2):
-    """What the DAT lines do after a command."""
-    NONE  = 0
-    WRITE = 1    # after a good response, write `blocks` blocks from `i` (CMD24, CMD25)
-    READ  = 2    # read one block to `o` (CMD17); armed when the command starts
+    """What the DAT lines do after a command; values from :class:`~maglog.hw.arch.sd.
+    DataPhase` (the firmware's view of the same field)."""
+    NONE  = arch.DataPhase.NONE.value
+    WRITE = arch.DataPhase.WRITE.value   # after a good response, write `blocks` blocks from `i`
+    READ  = arch.DataPhase.READ.value    # read one block to `o`; armed when the command starts
 
 
 class _Busy(enum.Enum, shape=2):
@@ -41,12 +62,16 @@ class SdioHost(wiring.Component):
 
     Members
     -------
-    bus : ``In(csr.Signature(...))``
+    bus : ``In(csr.Signature(addr_width=ADDR_WIDTH, data_width=32))``
         Register access.
     i : ``In(stream.Signature(8))``; o : ``Out(stream.Signature(8))``
-    sd_clk, sd_cmd_o, sd_cmd_oe : ``Out(1)``; sd_cmd_i : ``In(1)``
-    sd_dat_o : ``Out(4)``; sd_dat_oe : ``Out(1)``; sd_dat_i : ``In(4)``
+    sd : ``Out(sd_pins_signature())``
+        The card's pins.
     """
+    bus: In(csr.Signature(addr_width=ADDR_WIDTH, data_width=32))
+    i:   In(stream.Signature(8))
+    o:   Out(stream.Signature(8))
+    sd:  Out(sd_pins_signature())
 
     class Clock(csr.Register, access="rw"):
         """SD clock: f_sys / (2 * (divisor + 1)); `run` keeps it running while idle (the
@@ -101,7 +126,7 @@ class SdioHost(wiring.Component):
         value: csr.Field(csr.action.R, 32)
 
     def __init__(self):
-        regs = csr.Builder(addr_width=4, data_width=32, granularity=8)
+        regs = csr.Builder(addr_width=ADDR_WIDTH, data_width=32, granularity=8)
         self._clock    = regs.add("clock", self.Clock())
         self._argument = regs.add("argument", self.Argument())
         self._command  = regs.add("command", self.Command())
@@ -115,18 +140,7 @@ class SdioHost(wiring.Component):
         self._response = [regs.add(f"response{word}", self.Response())
                           for word in range(arch.R2_CONTENT_BITS // 32)]
         self._bridge = csr.Bridge(regs.as_memory_map())
-        super().__init__({
-            "bus":       In(csr.Signature(addr_width=regs.addr_width, data_width=regs.data_width)),
-            "i":         In(stream.Signature(8)),
-            "o":         Out(stream.Signature(8)),
-            "sd_clk":    Out(1),
-            "sd_cmd_o":  Out(1, init=1),
-            "sd_cmd_oe": Out(1),
-            "sd_cmd_i":  In(1, init=1),
-            "sd_dat_o":  Out(4, init=0xF),
-            "sd_dat_oe": Out(1),
-            "sd_dat_i":  In(4, init=0xF),
-        })
+        super().__init__()
         self.bus.memory_map = self._bridge.bus.memory_map
 
     def elaborate(self, platform):
@@ -142,15 +156,16 @@ class SdioHost(wiring.Component):
             m.d.comb += [engine.rise.eq(clock.rise), engine.fall.eq(clock.fall)]
 
         # Pins.
+        sd = self.sd
         m.d.comb += [
-            self.sd_clk.eq(clock.clk),
-            self.sd_cmd_o.eq(cmd.cmd_o),
-            self.sd_cmd_oe.eq(cmd.cmd_oe),
-            cmd.cmd_i.eq(self.sd_cmd_i),
-            self.sd_dat_o.eq(writer.dat_o),
-            self.sd_dat_oe.eq(writer.dat_oe),
-            writer.dat_i.eq(self.sd_dat_i),
-            reader.dat_i.eq(self.sd_dat_i),
+            sd.clk.eq(clock.clk),
+            sd.cmd_o.eq(cmd.cmd_o),
+            sd.cmd_oe.eq(cmd.cmd_oe),
+            cmd.cmd_i.eq(sd.cmd_i),
+            sd.dat_o.eq(writer.dat_o),
+            sd.dat_oe.eq(writer.dat_oe),
+            writer.dat_i.eq(sd.dat_i),
+            reader.dat_i.eq(sd.dat_i),
         ]
         wiring.connect(m, wiring.flipped(self.i), writer.i)
         wiring.connect(m, reader.o, wiring.flipped(self.o))
@@ -204,7 +219,7 @@ class SdioHost(wiring.Component):
                     m.d.sync += busy_waited.eq(busy_waited + 1)
                     with m.If(busy_waited < arch.BUSY_START_CLOCKS):
                         pass
-                    with m.Elif(self.sd_dat_i[0] == 1):
+                    with m.Elif(self.sd.dat_i[0] == 1):
                         m.d.sync += busy_state.eq(_Busy.IDLE)
                     with m.Elif(busy_waited >= self._busy_timeout.f.clocks.data):
                         m.d.sync += [busy_state.eq(_Busy.IDLE), busy_timeout.eq(1)]
@@ -222,7 +237,7 @@ class SdioHost(wiring.Component):
             status.write.r_data.eq(writer.status),
             status.read.r_data.eq(reader.status),
             status.busy_timeout.r_data.eq(busy_timeout),
-            status.dat_level.r_data.eq(self.sd_dat_i),
+            status.dat_level.r_data.eq(self.sd.dat_i),
             self._accepted.f.count.r_data.eq(writer.accepted),
         ]
         for word, reg in enumerate(self._response):

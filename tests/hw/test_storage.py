@@ -6,7 +6,6 @@ frames only, as many as the counters say.
 """
 
 import random
-from types import SimpleNamespace
 
 import pytest
 from amaranth import *
@@ -83,10 +82,7 @@ def run(batches, *, capacity, flush_between=True, channels=1):
     storage = chain.storage
     sdram = SdramChip(MT48LC4M32B2, clk_freq=CLK_FREQ)
     card = SdCard(CardImage(1 << 15), seed=3)
-    pins = SimpleNamespace(sd_clk=storage.sd.clk, sd_cmd_o=storage.sd.cmd_o,
-                           sd_cmd_oe=storage.sd.cmd_oe, sd_cmd_i=storage.sd.cmd_i,
-                           sd_dat_o=storage.sd.dat_o, sd_dat_oe=storage.sd.dat_oe,
-                           sd_dat_i=storage.sd.dat_i)
+    pins = storage.sd
     result = {}
 
     pending = [[] for _ in range(channels)]

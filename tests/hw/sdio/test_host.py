@@ -14,7 +14,8 @@ import pytest
 
 from maglog.hw.arch import sd as arch
 from maglog.hw.arch.sd import CardState
-from maglog.hw.sdio.host import SdioHost
+from maglog.hw.sdio.cmd import ResponseKind
+from maglog.hw.sdio.host import DataPhase, SdioHost
 from maglog.sim.amaranth_tb import run_simulation
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.sdcard import Faults, SdCard
@@ -46,7 +47,7 @@ def run(firmware, card, *, deadline=0.2, extra=()):
         outcome["driver"] = driver
 
     async def card_side(ctx):
-        await run_card(ctx, host, card)
+        await run_card(ctx, host.sd, card)
 
     run_simulation(host, [fw], background=[card_side, port.source, port.sink,
                                            *(make(host) for make in extra)],
@@ -66,7 +67,7 @@ def test_identification():
         async def meter(ctx):
             last, since = 0, None           # cycles since the last rising edge
             while card.state in (CardState.IDLE, CardState.READY, CardState.IDENT):
-                _, _, level = await ctx.tick().sample(host.sd_clk)
+                _, _, level = await ctx.tick().sample(host.sd.clk)
                 if since is not None:
                     since += 1
                 if level and not last:
@@ -177,8 +178,7 @@ def test_busy_past_the_timeout_is_reported_with_the_blocks_written():
 
 
 def test_card_that_never_finishes_power_up(monkeypatch):
-    import maglog.sw.sdcard as sdcard
-    monkeypatch.setattr(sdcard, "ACMD41_LIMIT_S", 0.01)
+    monkeypatch.setattr(arch, "ACMD41_LIMIT_S", 0.01)
     card = new_card(acmd41_busy=(10_000, 10_000))
 
     async def firmware(driver):
@@ -197,3 +197,12 @@ def test_no_card():
 
     out = run(firmware, card)
     assert isinstance(out.get("error"), SdNoCard)
+
+
+@pytest.mark.parametrize("gateware, firmware", [(ResponseKind, arch.ResponseKind),
+                                                (DataPhase, arch.DataPhase)])
+def test_command_fields_take_their_values_from_arch(gateware, firmware):
+    # The firmware writes the hw/arch values into the `command` register's fields.
+    assert {m.name: m.value for m in gateware} == {m.name: m.value for m in firmware}
+    fields = RegisterMap(SdioHost().bus.memory_map)["command"]
+    assert fields.field("kind").width == fields.field("data").width == 2
