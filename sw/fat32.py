@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from ..hw.arch import fat32 as arch
 
 
-__all__ = ["FatError", "FatFullError", "BlockDevice", "ImageFile", "FormatPlan", "plan_format",
+__all__ = ["FatError", "FatFullError", "FatNoNumberError", "BlockDevice", "ImageFile", "FormatPlan", "plan_format",
            "format_image", "Volume", "LogFile", "Extent", "Extents", "FAT_CACHE_SECTORS"]
 
 SECTOR = arch.SECTOR_BYTES
@@ -55,6 +55,10 @@ FAT_CACHE_SECTORS = 8
 
 class FatError(Exception):
     """The card is not a sane FAT32 volume, or an operation on it failed."""
+
+
+class FatNoNumberError(FatError):
+    """Every LOG file number is taken (``LOG99999.TXT`` exists)."""
 
 
 class FatFullError(FatError):
@@ -472,6 +476,8 @@ class Volume:
         self.next_free = None
         self.fsinfo_valid = False
         self.fat_cache_sectors = fat_cache_sectors
+        #: The clean-shutdown bit was clear at mount: the volume was not closed cleanly.
+        self.was_dirty = False
         #: FAT sectors read from the card so far (a measure of the cache's work).
         self.fat_reads = 0
         self._fsinfo = None
@@ -540,6 +546,7 @@ class Volume:
     async def _check_fat_head(self):
         fat1 = await self._fat_entry(1)
         if not fat1 & arch.CLEAN_SHUTDOWN_BIT:
+            self.was_dirty = True
             self.notes.append("the volume is dirty (clean-shutdown bit of FAT[1] clear): it "
                               "was not closed cleanly; lost clusters are possible")
         if not fat1 & arch.HARD_ERROR_BIT:
@@ -718,7 +725,7 @@ class Volume:
         :class:`LogFile`. Never overwrites; raises :class:`FatError` after LOG99999."""
         highest, slot, _ = await self._scan_root()
         if highest >= LOG_MAX_NUMBER:
-            raise FatError(f"no free LOG file number: LOG{LOG_MAX_NUMBER:05d}.TXT exists and "
+            raise FatNoNumberError(f"no free LOG file number: LOG{LOG_MAX_NUMBER:05d}.TXT exists and "
                            f"is the last one the 8.3 name LOGnnnnn.TXT allows")
         number = highest + 1
         name = f"LOG{number:05d}TXT".encode("ascii")

@@ -441,14 +441,16 @@ def test_dirty_while_recording_clean_after_close(tmp_path, fat_tools):
         second = await Volume.mount(device)
         await log.close(T1)
         await volume.close()
-        return during, second.notes
+        return during, second
 
     with ImageFile(image) as device:
-        during, notes = run(record(device))
+        during, second = run(record(device))
+    notes = second.notes
     assert [value & arch.CLEAN_SHUTDOWN_BIT for value in during] == [0, 0]
-    assert any("dirty" in note for note in notes)
+    assert any("dirty" in note for note in notes) and second.was_dirty
     assert fat_entries(image, 1)[0] == fat_entries(image, 1, fat=1)[0] == 0x0FFFFFFF
-    assert run(mounted(image, lambda v: asyncio.sleep(0, v.notes))) == []
+    clean = run(mounted(image, lambda v: asyncio.sleep(0, v)))
+    assert clean.notes == [] and not clean.was_dirty
     assert fsck_findings(fat_tools["fsck.fat"], image, tmp_path) == []
 
 

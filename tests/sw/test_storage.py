@@ -1,0 +1,134 @@
+"""sw/storage.py: block I/O through the DMA's sector buffer, ring writes and the flush.
+
+On the storage gateware (ring, SDRAM, DMA, SD host; Amaranth simulator, SDRAM and card
+models): the card is mounted through the sector buffer, a log file is created, frames go
+into the ring and are flushed into the file several times, the file is closed; the image
+must then pass ``fsck.fat -n`` and hold exactly the frames (calib.card reads it back).
+"""
+
+import asyncio
+import datetime as dt
+import random
+
+import pytest
+
+from maglog.calib.card import read_logs
+from maglog.hw.dma import DmaSource
+from maglog.sw import storage as sw_storage
+from maglog.sw.fat32 import Volume, format_image
+from maglog.sw.storage import DmaStorage, flush_ring
+
+from .test_fat32 import fsck_findings
+
+MiB = 1 << 20
+T0 = dt.datetime(2026, 11, 24, 12, 0, 0)
+
+
+def test_dma_source_values_are_the_gateware_s():
+    assert sw_storage.DMA_SOURCE_RING == DmaSource.RING.value
+    assert sw_storage.DMA_SOURCE_BUFFER == DmaSource.BUFFER.value
+
+
+def test_flush_refuses_a_timestamp_that_is_not_a_datetime():
+    with pytest.raises(TypeError, match=r"^Timestamp must be a datetime, not 12$"):
+        asyncio.run(flush_ring(None, None, 12))
+
+
+def frames_of(rng, count):
+    body = bytes(b for b in range(0x20, 0x7F) if b != ord("$"))
+    return [b"$" + bytes(rng.choice(body) for _ in range(rng.randrange(30, 120))) + b"\r\n"
+            for _ in range(count)]
+
+
+def gateware_run(image_path, batches, *, capacity=1 << 14):
+    """On the storage gateware: mount the card image at ``image_path`` through the DMA,
+    create a LOG file, flush after each batch of frames pushed into the ring, close; returns
+    the card image and what the firmware saw (flush results, file name, ring drops)."""
+    from amaranth.lib import wiring
+
+    from maglog.hw.arch.sdram import MT48LC4M32B2
+    from maglog.hw.storage import Storage
+    from maglog.sim.amaranth_tb import run_simulation
+    from maglog.sim.models.card_image import CardImage
+    from maglog.sim.models.sdcard import SdCard
+    from maglog.sim.models.sdram import SdramChip
+    from maglog.sim.sdio_amaranth import CsrBus, run_card
+    from maglog.sim.sdram_amaranth import run_sdram
+
+    clk_freq = 4e6
+    storage = Storage(MT48LC4M32B2, clk_freq=clk_freq, capacity=capacity)
+    sdram = SdramChip(MT48LC4M32B2, clk_freq=clk_freq)
+    card = SdCard(CardImage.load(image_path), seed=5)
+    pending = []
+    result = {}
+
+    async def feed(ctx):
+        port = storage.i
+        while True:
+            if not pending:
+                ctx.set(port.valid, 0)
+                await ctx.tick()
+                continue
+            frame = pending[0]
+            for n, byte in enumerate(frame):
+                ctx.set(port.payload, {"data": byte, "last": n == len(frame) - 1})
+                ctx.set(port.valid, 1)
+                await ctx.tick().until(port.ready)
+            ctx.set(port.valid, 0)
+            pending.pop(0)
+
+    async def firmware(ctx):
+        bus = CsrBus(ctx, storage.bus, clock_period=1 / clk_freq)
+        disk = DmaStorage(bus, storage.bus.memory_map, sys_clock_hz=clk_freq)
+        await ctx.tick().until(storage.sdram_ready)
+        await disk.driver.initialise()
+        volume = await Volume.mount(disk.device)
+        log = await volume.create_log(T0)
+        flushes = []
+        for batch in batches:
+            pending.extend(batch)
+            while pending:
+                await ctx.tick()
+            await ctx.tick().repeat(64)             # the last frame committed
+            flushes.append(await flush_ring(log, disk, T0))
+        await log.close(T0)
+        result["flushes"], result["name"] = flushes, log.name
+        result["dropped"] = await disk.read("dropped")
+
+    async def sdram_side(ctx):
+        await run_sdram(ctx, storage.sdram, sdram)
+
+    async def card_side(ctx):
+        await run_card(ctx, storage.sd, card)
+
+    run_simulation(storage, [firmware], background=[sdram_side, card_side, feed],
+                   name="sw_storage", clock_period=1 / clk_freq)
+    assert sdram.errors == [] and card.errors == []
+    return card.image, result
+
+
+@pytest.mark.slow
+def test_flushes_through_the_storage_gateware(tmp_path, fat_tools):
+    # 512-byte clusters: the flushes cross cluster boundaries every sector, and a partial
+    # sector is written again at every flush.
+    image_path = tmp_path / "card.img"
+    format_image(image_path, 40 * MiB, cluster_bytes=512, volume_id=1)
+    rng = random.Random(4)
+    batches = [frames_of(rng, n) for n in (9, 1, 14)]
+    image, result = gateware_run(image_path, batches)
+    assert result["dropped"] == 0
+    stream = b"".join(frame for batch in batches for frame in batch)
+    flushes = result["flushes"]
+    assert sum(f.bytes for f in flushes) == len(stream)
+    ends = [sum(len(f) for batch in batches[:k + 1] for f in batch) for k in range(3)]
+    assert [f.bytes for f in flushes] == [ends[0], ends[1] - ends[0], ends[2] - ends[1]]
+    assert [f.released for f in flushes] == [ends[0] // 512, ends[1] // 512 - ends[0] // 512,
+                                             ends[2] // 512 - ends[1] // 512]
+    # Each flush writes from the sector its last one left partial.
+    assert [f.sectors for f in flushes] == [-(-ends[0] // 512),
+                                            -(-ends[1] // 512) - ends[0] // 512,
+                                            -(-ends[2] // 512) - ends[1] // 512]
+    out = tmp_path / "out.img"
+    image.save(out)
+    assert fsck_findings(fat_tools["fsck.fat"], out, tmp_path) == []
+    assert dict(read_logs(out))[result["name"]] == stream
