@@ -42,8 +42,9 @@ from dataclasses import dataclass
 from ..hw.arch import fat32 as arch
 
 
-__all__ = ["FatError", "FatFullError", "FatNoNumberError", "BlockDevice", "ImageFile", "FormatPlan", "plan_format",
-           "format_image", "Volume", "LogFile", "Extent", "Extents", "FAT_CACHE_SECTORS"]
+__all__ = ["FatError", "FatFullError", "FatNoNumberError", "BlockDevice", "ImageFile",
+           "FormatPlan", "plan_format", "format_image", "Volume", "LogFile", "Extent", "Extents",
+           "FAT_CACHE_SECTORS"]
 
 SECTOR = arch.SECTOR_BYTES
 _LOG_NAME = re.compile(rb"LOG(\d{5})TXT")
@@ -725,8 +726,9 @@ class Volume:
         :class:`LogFile`. Never overwrites; raises :class:`FatError` after LOG99999."""
         highest, slot, _ = await self._scan_root()
         if highest >= LOG_MAX_NUMBER:
-            raise FatNoNumberError(f"no free LOG file number: LOG{LOG_MAX_NUMBER:05d}.TXT exists and "
-                           f"is the last one the 8.3 name LOGnnnnn.TXT allows")
+            raise FatNoNumberError(f"no free LOG file number: LOG{LOG_MAX_NUMBER:05d}.TXT "
+                                   f"exists and is the last one the 8.3 name LOGnnnnn.TXT "
+                                   f"allows")
         number = highest + 1
         name = f"LOG{number:05d}TXT".encode("ascii")
         await self._mark_dirty()

@@ -21,7 +21,7 @@ from .sdcard import SdCardDriver, SdTimeout
 
 
 __all__ = ["DMA_SOURCE_RING", "DMA_SOURCE_BUFFER", "RingSource", "DmaBufferPort",
-           "DmaBlockDevice", "DmaStorage", "FlushResult", "flush_ring"]
+           "DmaBlockDevice", "DmaStorage", "FlushResult", "RingError", "flush_ring"]
 
 #: Values of the DMA's ``control.source`` field (``hw.dma.DmaSource``; the firmware does not
 #: import gateware, the tests check that the two agree).
@@ -197,6 +197,10 @@ class DmaStorage:
         return commands
 
 
+class RingError(Exception):
+    """The ring and the file it is flushed into disagree."""
+
+
 @dataclass(frozen=True)
 class FlushResult:
     """What one flush did: ``bytes`` new bytes of the file on the card, ``sectors`` sectors
@@ -226,6 +230,9 @@ async def flush_ring(file, storage, timestamp):
         raise TypeError(f"Timestamp must be a datetime, not {timestamp!r}")
     level = await storage.read("level")
     start = file.size
+    if level < start % BLOCK_BYTES:
+        raise RingError(f"the ring holds {level} bytes, fewer than the {start % BLOCK_BYTES} "
+                        f"of {file.name}'s partial last sector: ring and file are out of step")
     target = start - start % BLOCK_BYTES + level
     reach = storage._limit("first")
     sectors = writes = released = 0

@@ -15,8 +15,8 @@ import pytest
 from maglog.calib.card import read_logs
 from maglog.hw.dma import DmaSource
 from maglog.sw import storage as sw_storage
-from maglog.sw.fat32 import Volume, format_image
-from maglog.sw.storage import DmaStorage, flush_ring
+from maglog.sw.fat32 import ImageFile, Volume, format_image
+from maglog.sw.storage import DmaStorage, RingError, flush_ring
 
 from .test_fat32 import fsck_findings
 
@@ -132,3 +132,31 @@ def test_flushes_through_the_storage_gateware(tmp_path, fat_tools):
     image.save(out)
     assert fsck_findings(fat_tools["fsck.fat"], out, tmp_path) == []
     assert dict(read_logs(out))[result["name"]] == stream
+
+
+def test_flush_refuses_a_ring_out_of_step_with_the_file(tmp_path):
+    # The file ends 188 bytes into a sector, which the ring should still hold; a ring with
+    # fewer committed bytes (emptied behind the file's back) is refused before any write.
+    image = tmp_path / "card.img"
+    format_image(image, 40 * MiB, cluster_bytes=512)
+
+    class RingLevel:
+        async def read(self, name):
+            assert name == "level"
+            return 100
+
+    async def work():
+        with ImageFile(image) as device:
+            volume = await Volume.mount(device)
+            log = await volume.create_log(T0)
+            extents = await log.extents(700)
+            for run in extents.runs:
+                for k in range(run.count):
+                    await device.write_block(run.lba + k, b"x" * 512)
+            await log.grow(700, T0)
+            with pytest.raises(RingError, match=r"^the ring holds 100 bytes, fewer than the "
+                                                r"188 of LOG00001\.TXT's partial last sector"):
+                await flush_ring(log, RingLevel(), T0)
+            return log.size
+
+    assert asyncio.run(work()) == 700
