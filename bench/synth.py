@@ -24,8 +24,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from amaranth.back import verilog
-
 from maglog.hw.arbiter import FrameArbiter
 from maglog.hw.frame_fifo import FrameFifo
 from maglog.hw.frame_filter import ChannelKind
@@ -36,6 +34,7 @@ from maglog.hw.sdio.host import SdioHost
 from maglog.hw.dma import Dma
 from maglog.hw.ringbuffer import RingBuffer
 from maglog.hw.sdram import SdramController
+from maglog.hw.top import component_verilog
 from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
 from maglog.hw.uart import UartRx
 
@@ -128,7 +127,7 @@ def _flip_flop_cells(stat):
 def synthesize(design, yosys, workdir):
     """Convert, synthesize and count one design; returns a result dict."""
     start = time.perf_counter()
-    text = verilog.convert(design.factory(), name=design.key)
+    text = component_verilog(design.factory(), name=design.key)
     convert_seconds = time.perf_counter() - start
     (workdir / f"{design.key}.v").write_text(text)
     (workdir / f"{design.key}.ys").write_text(

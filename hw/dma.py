@@ -1,13 +1,12 @@
 """DMA between the ring buffer, a CPU sector buffer and the SD host's byte streams."""
 
-from types import SimpleNamespace
-
 from amaranth import *
 from amaranth.lib import enum, stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
 from .arch import sd as arch_sd
+from .ringbuffer import RingPort
 from .soc import csr
 
 
@@ -37,11 +36,12 @@ class Dma(wiring.Component):
     Members
     -------
     bus : ``In(csr.Signature(...))``
-    ring_read_start, ring_read_sector, ring_release, ring_release_sectors : ``Out``
-    ring_o : ``In(stream.Signature(8))``; ring_reading : ``In(1)``
-    ring_level, ring_high_water, ring_kept, ring_dropped : ``In``
+    ring : ``Out(RingPort(level_bits))``
+        To the ring buffer's ``dma`` port.
     sd_i : ``Out(stream.Signature(8))``  (to ``SdioHost.i``)
-    sd_o : ``In(stream.Signature(8))``   (from ``SdioHost.o``)
+    sd_o : ``In(stream.Signature(8, always_ready=True))``   (from ``SdioHost.o``)
+    busy : ``Out(1)``
+        A write is armed (register ``status.busy``).
     """
 
     class Control(csr.Register, access="w"):
@@ -49,13 +49,16 @@ class Dma(wiring.Component):
         its sector `first` after the read pointer on), or (arm_read) points the sector
         buffer's fill position back at its start. `abort` ends an armed write (after a
         failed transfer): the rest of a sector already asked of the ring is read and
-        dropped, so the ring stays in step."""
+        dropped, so the ring stays in step. `clear` empties the ring (write, committed and read
+        pointers back to the start; its counters keep counting): only while not recording,
+        the DMA idle and no frame in flight."""
         start:    csr.Field(csr.action.W, 1)
         source:   csr.Field(csr.action.W, DmaSource)
         arm_read: csr.Field(csr.action.W, 1)
         sectors:  csr.Field(csr.action.W, 12)
         first:    csr.Field(csr.action.W, 12)
         abort:    csr.Field(csr.action.W, 1)
+        clear:    csr.Field(csr.action.W, 1)
 
     class Release(csr.Register, access="w"):
         """Sectors the card has accepted, handed back to the ring."""
@@ -110,18 +113,10 @@ class Dma(wiring.Component):
         super().__init__({
             "bus":                  In(csr.Signature(addr_width=regs.addr_width,
                                                      data_width=regs.data_width)),
-            "ring_read_start":      Out(1),
-            "ring_read_sector":     Out(16),
-            "ring_o":               In(stream.Signature(8)),
-            "ring_reading":         In(1),
-            "ring_release":         Out(1),
-            "ring_release_sectors": Out(16),
-            "ring_level":           In(level_bits),
-            "ring_high_water":      In(level_bits),
-            "ring_kept":            In(32),
-            "ring_dropped":         In(32),
+            "ring":                 Out(RingPort(level_bits)),
             "sd_i":                 Out(stream.Signature(8)),
-            "sd_o":                 In(stream.Signature(8)),
+            "sd_o":                 In(stream.Signature(8, always_ready=True)),
+            "busy":                 Out(1),
         })
         self.bus.memory_map = self._bridge.bus.memory_map
 
@@ -137,27 +132,31 @@ class Dma(wiring.Component):
         # (the DMA while it sends the buffer). A read port is given the next cycle's address.
         write_port = buffer.write_port(granularity=8)
         read_port = buffer.read_port()
-        cpu_write = SimpleNamespace(addr=Signal(range(BUFFER_WORDS)), data=Signal(32),
-                                    en=Signal())
-        fill_write = SimpleNamespace(addr=Signal(range(BUFFER_WORDS)), data=Signal(32),
-                                     en=Signal(WORD_BYTES))
-        cpu_read = SimpleNamespace(addr=Signal(range(BUFFER_WORDS)), data=read_port.data)
-        dma_read = SimpleNamespace(addr=Signal(range(BUFFER_WORDS)), data=read_port.data)
-        with m.If(fill_write.en.any()):
-            m.d.comb += [write_port.addr.eq(fill_write.addr), write_port.data.eq(fill_write.data),
-                         write_port.en.eq(fill_write.en)]
+        cpu_write_addr  = Signal(range(BUFFER_WORDS))
+        cpu_write_data  = Signal(32)
+        cpu_write_en    = Signal()
+        fill_write_addr = Signal(range(BUFFER_WORDS))
+        fill_write_data = Signal(32)
+        fill_write_en   = Signal(WORD_BYTES)      # the byte lane of the filled byte
+        cpu_read_addr   = Signal(range(BUFFER_WORDS))
+        dma_read_addr   = Signal(range(BUFFER_WORDS))
+        with m.If(fill_write_en.any()):
+            m.d.comb += [write_port.addr.eq(fill_write_addr), write_port.data.eq(fill_write_data),
+                         write_port.en.eq(fill_write_en)]
         with m.Else():
-            m.d.comb += [write_port.addr.eq(cpu_write.addr), write_port.data.eq(cpu_write.data),
-                         write_port.en.eq(Mux(cpu_write.en, (1 << WORD_BYTES) - 1, 0))]
+            m.d.comb += [write_port.addr.eq(cpu_write_addr), write_port.data.eq(cpu_write_data),
+                         write_port.en.eq(Mux(cpu_write_en, (1 << WORD_BYTES) - 1, 0))]
 
         # Ring status.
+        ring = self.ring
         m.d.comb += [
-            self._level.f.bytes.r_data.eq(self.ring_level),
-            self._high_water.f.bytes.r_data.eq(self.ring_high_water),
-            self._kept.f.frames.r_data.eq(self.ring_kept),
-            self._dropped.f.frames.r_data.eq(self.ring_dropped),
-            self.ring_release.eq(self._release.f.sectors.w_stb),
-            self.ring_release_sectors.eq(self._release.f.sectors.w_data),
+            self._level.f.bytes.r_data.eq(ring.level),
+            self._high_water.f.bytes.r_data.eq(ring.high_water),
+            self._kept.f.frames.r_data.eq(ring.kept),
+            self._dropped.f.frames.r_data.eq(ring.dropped),
+            ring.release.eq(self._release.f.sectors.w_stb),
+            ring.release_sectors.eq(self._release.f.sectors.w_data),
+            ring.clear.eq(self._control.f.clear.w_stb & self._control.f.clear.w_data),
         ]
 
         # CPU access to the sector buffer, a word at a time, the index moving on.
@@ -174,23 +173,22 @@ class Dma(wiring.Component):
         m.d.sync += index.eq(index_next)
         # The read port is given the next index (a word just written is not read back at once).
         m.d.comb += [
-            cpu_read.addr.eq(index_next),
-            read.r_data.eq(cpu_read.data),
-            cpu_write.addr.eq(index),
-            cpu_write.data.eq(write.w_data),
-            cpu_write.en.eq(write.w_stb),
+            cpu_read_addr.eq(index_next),
+            read.r_data.eq(read_port.data),
+            cpu_write_addr.eq(index),
+            cpu_write_data.eq(write.w_data),
+            cpu_write_en.eq(write.w_stb),
         ]
 
         # SD read data fills the buffer from its start (after arm_read).
         fill = Signal(range(arch_sd.BLOCK_BYTES + 1))
         control = self._control.f
         m.d.comb += [
-            self.sd_o.ready.eq(1),
-            fill_write.addr.eq(fill[2:]),
-            fill_write.data.eq(Cat([self.sd_o.payload] * WORD_BYTES)),
+            fill_write_addr.eq(fill[2:]),
+            fill_write_data.eq(Cat([self.sd_o.payload] * WORD_BYTES)),
         ]
         with m.If(self.sd_o.valid & (fill < arch_sd.BLOCK_BYTES)):
-            m.d.comb += fill_write.en.eq(1 << fill[:2])
+            m.d.comb += fill_write_en.eq(1 << fill[:2])
             m.d.sync += fill.eq(fill + 1)
         with m.If(control.arm_read.w_stb & control.arm_read.w_data):
             m.d.sync += fill.eq(0)
@@ -206,7 +204,8 @@ class Dma(wiring.Component):
         m.d.comb += [
             self._status.f.busy.r_data.eq(busy),
             self._status.f.sent.r_data.eq(sent),
-            self.ring_read_sector.eq(first + sent),
+            self.busy.eq(busy),
+            ring.read_sector.eq(first + sent),
         ]
         starting = Signal()
         m.d.comb += starting.eq(control.start.w_stb & control.start.w_data & ~busy &
@@ -225,38 +224,38 @@ class Dma(wiring.Component):
             with m.Else():
                 m.d.sync += busy.eq(0)
         with m.If(discarding):
-            m.d.comb += self.ring_o.ready.eq(1)
-            with m.If(self.ring_o.valid):
+            m.d.comb += ring.data.ready.eq(1)
+            with m.If(ring.data.valid):
                 m.d.sync += count.eq(count + 1)
                 with m.If(count == arch_sd.BLOCK_BYTES - 1):
                     m.d.sync += [count.eq(0), asked.eq(0), busy.eq(0), discarding.eq(0)]
         with m.Elif(busy & (source == DmaSource.RING)):
             with m.If(~asked):
                 # Asks the ring for the next sector once it is free.
-                with m.If(~self.ring_reading):
-                    m.d.comb += self.ring_read_start.eq(1)
+                with m.If(~ring.reading):
+                    m.d.comb += ring.read_start.eq(1)
                     m.d.sync += asked.eq(1)
             with m.Else():
                 m.d.comb += [
-                    self.sd_i.valid.eq(self.ring_o.valid),
-                    self.sd_i.payload.eq(self.ring_o.payload),
-                    self.ring_o.ready.eq(self.sd_i.ready),
+                    self.sd_i.valid.eq(ring.data.valid),
+                    self.sd_i.payload.eq(ring.data.payload),
+                    ring.data.ready.eq(self.sd_i.ready),
                 ]
         with m.If(busy & ~discarding & (source == DmaSource.BUFFER)):
             m.d.comb += [
                 self.sd_i.valid.eq(1),
-                self.sd_i.payload.eq(dma_read.data.word_select(count[:2], 8)),
+                self.sd_i.payload.eq(read_port.data.word_select(count[:2], 8)),
             ]
         # The buffer's read port is given the word of the byte after a transfer.
         step = self.sd_i.valid & self.sd_i.ready
-        m.d.comb += dma_read.addr.eq(Mux(step, count + 1, count)[2:])
+        m.d.comb += dma_read_addr.eq(Mux(step, count + 1, count)[2:])
         sending = busy & (source == DmaSource.BUFFER)
         with m.If(starting & (control.source.w_data == DmaSource.BUFFER)):
             m.d.comb += read_port.addr.eq(0)        # the first word, ready when sending starts
         with m.Elif(sending):
-            m.d.comb += read_port.addr.eq(dma_read.addr)
+            m.d.comb += read_port.addr.eq(dma_read_addr)
         with m.Else():
-            m.d.comb += read_port.addr.eq(cpu_read.addr)
+            m.d.comb += read_port.addr.eq(cpu_read_addr)
         with m.If(self.sd_i.valid & self.sd_i.ready):
             m.d.sync += count.eq(count + 1)
             with m.If(count == arch_sd.BLOCK_BYTES - 1):

@@ -11,11 +11,12 @@ from .arch import frames as arch_frames
 from .arch import uart as arch_uart
 from .frame_filter import ChannelKind, FrameFilter, counters_signature
 from .frame_fifo import FrameByte
+from .soc import csr
 from .uart import UartRx
 
 
 __all__ = ["ChannelConfig", "DEFAULT_CHANNELS", "TOPLEVEL_NAME", "Channel", "FrontEnd",
-           "divisor_for", "generate_verilog"]
+           "FrontEndRegisters", "divisor_for", "generate_verilog"]
 
 
 #: Module name of the front end's generated Verilog.
@@ -23,6 +24,9 @@ TOPLEVEL_NAME = "maglog_frontend"
 
 #: Width of each channel's run-time baud divisor.
 DIVISOR_BITS = 16
+
+#: Width of the frame counters the registers show: 2^32 frames at 50 Hz is 994 days.
+COUNTER_BITS = 32
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,8 @@ class Channel(wiring.Component):
     divisor : ``In(16)``
     o : ``Out(stream.Signature(FrameByte))``
     flush : ``Out(1)``
+    kept : ``Out(1)``
+        One-cycle strobe as the last byte of a kept frame leaves the channel.
     counters : ``Out(counters_signature(counter_width))``
     """
     def __init__(self, kind, *, divisor_init=1, max_frame=arch_frames.DEFAULT_MAX_FRAME,
@@ -78,6 +84,7 @@ class Channel(wiring.Component):
             "divisor":  In(DIVISOR_BITS, init=divisor_init),
             "o":        Out(stream.Signature(FrameByte())),
             "flush":    Out(1),
+            "kept":     Out(1),
             "counters": Out(counters_signature(counter_width)),
         })
 
@@ -89,6 +96,7 @@ class Channel(wiring.Component):
             self.uart.rx.eq(self.rx),
             self.uart.divisor.eq(self.divisor),
             self.flush.eq(self.filter.flush),
+            self.kept.eq(self.o.valid & self.o.ready & self.o.payload.last),
         ]
         wiring.connect(m, self.uart.o, self.filter.i)
         wiring.connect(m, self.filter.o, wiring.flipped(self.o))
@@ -118,6 +126,8 @@ class FrontEnd(wiring.Component):
         Kept frames from all channels, never interleaved.
     flush : ``Out(1)``
         A kept GGA with a fix (from any NMEA channel).
+    kept : ``Out(N)``
+        Per channel, a one-cycle strobe as a kept frame's last byte leaves it (activity LEDs).
     counters : ``Out(counters_signature(counter_width))`` × N
     """
     def __init__(self, channels=DEFAULT_CHANNELS, *, clk_freq=50e6,
@@ -140,6 +150,7 @@ class FrontEnd(wiring.Component):
             "divisor":  In(DIVISOR_BITS).array(n),
             "o":        Out(stream.Signature(TaggedFrameByte(n))),
             "flush":    Out(1),
+            "kept":     Out(n),
             "counters": Out(counters_signature(counter_width)).array(n),
         })
 
@@ -161,8 +172,70 @@ class FrontEnd(wiring.Component):
             wiring.connect(m, channel.o, self.arbiter.i[k])
             wiring.connect(m, channel.counters, wiring.flipped(self.counters[k]))
             flushes.append(channel.flush)
+            m.d.comb += self.kept[k].eq(channel.kept)
         wiring.connect(m, self.arbiter.o, wiring.flipped(self.o))
         m.d.comb += self.flush.eq(Cat(flushes).any())
+        return m
+
+
+class FrontEndRegisters(wiring.Component):
+    """The front end's divisors and counters as CSR registers (window ``frontend``).
+
+    Per channel ``k``: ``ch{k}_divisor``, then ``ch{k}_{name}`` for each counter of
+    :data:`~maglog.hw.arch.frames.COUNTER_NAMES` (kept, then drops by cause).
+
+    Parameters
+    ----------
+    channels : int
+        Channel count.
+
+    Members
+    -------
+    bus : ``In(csr.Signature(...))``
+    divisor : ``Out(16)`` × channels
+        To :attr:`FrontEnd.divisor`.
+    counters : ``In(counters_signature(32))`` × channels
+        From :attr:`FrontEnd.counters`.
+    """
+
+    class Divisor(csr.Register, access="rw"):
+        """Baud divisor of the channel (f_clk / (16 * baud)); 0 selects its nominal rate."""
+        value: csr.Field(csr.action.RW, DIVISOR_BITS)
+
+    class Counter(csr.Register, access="r"):
+        """Frames of the channel: kept, or dropped for the cause the register is named after
+        (32 bits: 2^32 frames at 50 Hz is 994 days, no silent wrap)."""
+        count: csr.Field(csr.action.R, COUNTER_BITS)
+
+    def __init__(self, channels):
+        if not isinstance(channels, int) or channels < 1:
+            raise ValueError(f"Channel count must be a positive integer, not {channels!r}")
+        self._channels = channels
+        per_channel = 1 + len(arch_frames.COUNTER_NAMES)
+        regs = csr.Builder(addr_width=max(1, (channels * per_channel - 1).bit_length()),
+                           data_width=32, granularity=8)
+        self._divisors = []
+        self._counters = []
+        for k in range(channels):
+            self._divisors.append(regs.add(f"ch{k}_divisor", self.Divisor()))
+            self._counters.append({name: regs.add(f"ch{k}_{name}", self.Counter())
+                                   for name in arch_frames.COUNTER_NAMES})
+        self._bridge = csr.Bridge(regs.as_memory_map())
+        super().__init__({
+            "bus":      In(csr.Signature(addr_width=regs.addr_width, data_width=32)),
+            "divisor":  Out(DIVISOR_BITS).array(channels),
+            "counters": In(counters_signature(COUNTER_BITS)).array(channels),
+        })
+        self.bus.memory_map = self._bridge.bus.memory_map
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.bridge = self._bridge
+        wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
+        for k in range(self._channels):
+            m.d.comb += self.divisor[k].eq(self._divisors[k].f.value.data)
+            for name, reg in self._counters[k].items():
+                m.d.comb += reg.f.count.r_data.eq(getattr(self.counters[k], name))
         return m
 
 

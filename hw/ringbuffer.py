@@ -11,7 +11,54 @@ from .frame_fifo import FrameByte
 from .sdram import request_layout
 
 
-__all__ = ["RingBuffer"]
+__all__ = ["RingPort", "RingBuffer"]
+
+
+class RingPort(wiring.Signature):
+    """The link between the DMA (the initiator: ``Out`` members are the DMA's outputs) and
+    the ring buffer.
+
+    Members
+    -------
+    read_start : ``Out(1)``; read_sector : ``Out(16)``
+        Read sector ``read_sector`` after the read pointer (taken while not ``reading``).
+    data : ``In(stream.Signature(8))``
+        The sector's 512 bytes.
+    reading : ``In(1)``
+        A sector read is under way.
+    release : ``Out(1)``; release_sectors : ``Out(16)``
+        Move the read pointer on by whole sectors the card has.
+    clear : ``Out(1)``
+        Empty the ring: write, committed and read pointers back to the start (the counters
+        keep counting). Only while nothing is read and no frame is coming in.
+    level, high_water : ``In(level_bits)``
+        Committed bytes not yet released; the most there ever were.
+    kept, dropped : ``In(32)``
+        Frames stored; frames dropped because the ring was full.
+    """
+    def __init__(self, level_bits):
+        if not isinstance(level_bits, int) or level_bits < 1:
+            raise ValueError(f"Level width must be a positive integer, not {level_bits!r}")
+        self.level_bits = level_bits
+        super().__init__({
+            "read_start":      Out(1),
+            "read_sector":     Out(16),
+            "data":            In(stream.Signature(8)),
+            "reading":         In(1),
+            "release":         Out(1),
+            "release_sectors": Out(16),
+            "clear":           Out(1),
+            "level":           In(level_bits),
+            "high_water":      In(level_bits),
+            "kept":            In(32),
+            "dropped":         In(32),
+        })
+
+    def __eq__(self, other):
+        return isinstance(other, RingPort) and other.level_bits == self.level_bits
+
+    def __repr__(self):
+        return f"RingPort({self.level_bits})"
 
 
 class RingBuffer(wiring.Component):
@@ -37,18 +84,11 @@ class RingBuffer(wiring.Component):
     Members
     -------
     i : ``In(stream.Signature(FrameByte))``
-    mem : ``Out(stream.Signature(request_layout(geometry)))``; mem_data : ``In(stream ...)``
-        The controller's port (``mem_data`` has no backpressure).
-    read_start : ``In(1)``; read_sector : ``In(16)``
-        Read sector ``read_sector`` after the read pointer.
-    o : ``Out(stream.Signature(8))``
-        The sector's 512 bytes.
-    reading : ``Out(1)``
-    release : ``In(1)``; release_sectors : ``In(16)``
-    level, high_water : ``Out(range(capacity + 1))``
-        Committed bytes not yet released; the most there ever were.
-    kept, dropped : ``Out(32)``
-        Frames stored; frames dropped because the ring was full.
+    mem : ``Out(stream.Signature(request_layout(geometry)))``
+    mem_data : ``In(stream.Signature(data_width, always_ready=True))``
+        The controller's port (read data has no backpressure).
+    dma : ``In(RingPort(log2(capacity) + 1))``
+        Sector reads, releases, clear and the ring's status, for the DMA.
     """
     def __init__(self, geometry, *, capacity=None):
         chip_bytes = geometry.words * geometry.data_width // 8
@@ -64,17 +104,8 @@ class RingBuffer(wiring.Component):
         super().__init__({
             "i":               In(stream.Signature(FrameByte())),
             "mem":             Out(stream.Signature(request_layout(geometry))),
-            "mem_data":        In(stream.Signature(geometry.data_width)),
-            "read_start":      In(1),
-            "read_sector":     In(16),
-            "o":               Out(stream.Signature(8)),
-            "reading":         Out(1),
-            "release":         In(1),
-            "release_sectors": In(16),
-            "level":           Out(bits),
-            "high_water":      Out(bits),
-            "kept":            Out(32),
-            "dropped":         Out(32),
+            "mem_data":        In(stream.Signature(geometry.data_width, always_ready=True)),
+            "dma":             In(RingPort(bits)),
         })
 
     def elaborate(self, platform):
@@ -85,15 +116,16 @@ class RingBuffer(wiring.Component):
         bits = exact_log2(self.capacity) + 1
         mask = self.capacity - 1
         sector_words = arch_sd.BLOCK_BYTES // lanes
+        port = self.dma
 
         wr = Signal(bits)          # next byte to write (tentative)
         commit = Signal(bits)      # end of the last whole frame
         rd = Signal(bits)          # first byte not yet released
         dropping = Signal()        # skipping the rest of a frame that did not fit
 
-        m.d.comb += self.level.eq(commit - rd)
-        with m.If(self.level > self.high_water):
-            m.d.sync += self.high_water.eq(self.level)
+        m.d.comb += port.level.eq(commit - rd)
+        with m.If(port.level > port.high_water):
+            m.d.sync += port.high_water.eq(port.level)
 
         # Write side: a byte per word write, with only its lane enabled.
         write_req = Signal(request_layout(g))
@@ -115,17 +147,21 @@ class RingBuffer(wiring.Component):
             with m.Elif(full):
                 # No room: the frame so far is forgotten, the rest skipped.
                 m.d.comb += self.i.ready.eq(1)
-                m.d.sync += [wr.eq(commit), self.dropped.eq(self.dropped + 1),
+                m.d.sync += [wr.eq(commit), port.dropped.eq(port.dropped + 1),
                              dropping.eq(~self.i.payload.last)]
             with m.Else():
                 m.d.comb += [write_valid.eq(1), self.i.ready.eq(write_taken)]
                 with m.If(write_taken):
                     m.d.sync += wr.eq(wr + 1)
                     with m.If(self.i.payload.last):
-                        m.d.sync += [commit.eq(wr + 1), self.kept.eq(self.kept + 1)]
+                        m.d.sync += [commit.eq(wr + 1), port.kept.eq(port.kept + 1)]
 
-        with m.If(self.release):
-            m.d.sync += rd.eq(rd + (self.release_sectors << exact_log2(arch_sd.BLOCK_BYTES)))
+        with m.If(port.release):
+            m.d.sync += rd.eq(rd + (port.release_sectors << exact_log2(arch_sd.BLOCK_BYTES)))
+        # Clear wins over a write and a release in the same cycle (the firmware clears only
+        # with no frame coming in and no sector being read).
+        with m.If(port.clear):
+            m.d.sync += [wr.eq(0), commit.eq(0), rd.eq(0), dropping.eq(0)]
 
         # Read side: word reads into a sector FIFO, as many as it has room for.
         m.submodules.words = words = SyncFIFOBuffered(width=g.data_width, depth=sector_words)
@@ -135,16 +171,16 @@ class RingBuffer(wiring.Component):
         out_count = Signal(range(arch_sd.BLOCK_BYTES + 1))
         read_valid = Signal()
         read_taken = Signal()
-        with m.If(self.read_start & ~self.reading):
+        with m.If(port.read_start & ~port.reading):
             m.d.sync += [
-                self.reading.eq(1),
-                base.eq(rd + (self.read_sector << exact_log2(arch_sd.BLOCK_BYTES))),
+                port.reading.eq(1),
+                base.eq(rd + (port.read_sector << exact_log2(arch_sd.BLOCK_BYTES))),
                 issued.eq(0), out_count.eq(0),
             ]
         room = Signal()
         m.d.comb += [
             room.eq(words.level + in_flight < sector_words),
-            read_valid.eq(self.reading & (issued < sector_words) & room),
+            read_valid.eq(port.reading & (issued < sector_words) & room),
         ]
         with m.If(read_taken):
             m.d.sync += issued.eq(issued + 1)
@@ -172,10 +208,10 @@ class RingBuffer(wiring.Component):
         committed_byte = (position - rd)[:bits] < (commit - rd)[:bits]
         byte = words.r_data.word_select(lane, 8) if lanes > 1 else words.r_data
         m.d.comb += [
-            self.o.valid.eq(self.reading & words.r_rdy),
-            self.o.payload.eq(Mux(committed_byte, byte, 0)),
+            port.data.valid.eq(port.reading & words.r_rdy),
+            port.data.payload.eq(Mux(committed_byte, byte, 0)),
         ]
-        with m.If(self.o.valid & self.o.ready):
+        with m.If(port.data.valid & port.data.ready):
             m.d.sync += out_count.eq(out_count + 1)
             if lanes > 1:
                 m.d.sync += lane.eq(lane + 1)
@@ -184,6 +220,6 @@ class RingBuffer(wiring.Component):
                 if lanes > 1:
                     m.d.sync += lane.eq(0)
             with m.If(out_count == arch_sd.BLOCK_BYTES - 1):
-                m.d.sync += self.reading.eq(0)
+                m.d.sync += port.reading.eq(0)
 
         return m

@@ -26,13 +26,21 @@ class Storage(wiring.Component):
     bus : ``In(csr.Signature(...))``
     sdram : ``Out(sdram_pins_signature(...))``; sd : ``Out(sd_pins_signature())``
     sdram_ready : ``Out(1)``
+    dma_done : ``Out(1)``
+        One-cycle strobe as the DMA's ``busy`` falls.
+    ring_overflow : ``Out(1)``
+        One-cycle strobe as the ring drops a frame (its ``dropped`` count moves on).
+    sd_error : ``Out(1)``
+        One-cycle strobe as an SD command or data phase ends with an error bit set (an
+        error bit of the host's ``status`` rising: every phase clears its bits as it
+        starts).
     """
     def __init__(self, chip, *, clk_freq, cas_latency=2, capacity=None):
         self.ctrl = SdramController(chip, clk_freq=clk_freq, cas_latency=cas_latency)
         self.ring = RingBuffer(chip.geometry, capacity=capacity)
-        self.dma = Dma(level_bits=len(self.ring.level))
+        self.dma = Dma(level_bits=self.ring.dma.signature.level_bits)
         self.sdio = SdioHost()
-        self._decoder = csr.Decoder(addr_width=6, data_width=32)
+        self._decoder = csr.Decoder(addr_width=5, data_width=32)
         self._decoder.add(self.sdio.bus, name="sdio")
         self._decoder.add(self.dma.bus, name="dma")
         super().__init__({
@@ -41,7 +49,10 @@ class Storage(wiring.Component):
                                             data_width=32)),
             "sdram":       Out(sdram_pins_signature(chip.geometry)),
             "sd":          Out(sd_pins_signature()),
-            "sdram_ready": Out(1),
+            "sdram_ready":   Out(1),
+            "dma_done":      Out(1),
+            "ring_overflow": Out(1),
+            "sd_error":      Out(1),
         })
         self.bus.memory_map = self._decoder.bus.memory_map
 
@@ -59,20 +70,25 @@ class Storage(wiring.Component):
         wiring.connect(m, ctrl.pins, wiring.flipped(self.sdram))
         m.d.comb += self.sdram_ready.eq(ctrl.ready)
 
-        m.d.comb += [
-            ring.read_start.eq(dma.ring_read_start),
-            ring.read_sector.eq(dma.ring_read_sector),
-            ring.release.eq(dma.ring_release),
-            ring.release_sectors.eq(dma.ring_release_sectors),
-            dma.ring_reading.eq(ring.reading),
-            dma.ring_level.eq(ring.level),
-            dma.ring_high_water.eq(ring.high_water),
-            dma.ring_kept.eq(ring.kept),
-            dma.ring_dropped.eq(ring.dropped),
-        ]
-        wiring.connect(m, ring.o, dma.ring_o)
+        wiring.connect(m, dma.ring, ring.dma)
         wiring.connect(m, dma.sd_i, sdio.i)
         wiring.connect(m, sdio.o, dma.sd_o)
 
         wiring.connect(m, sdio.sd, wiring.flipped(self.sd))
+
+        # Events for the SoC.
+        dma_busy = Signal()
+        dropped = Signal.like(ring.dma.dropped)
+        m.d.sync += [dma_busy.eq(dma.busy), dropped.eq(ring.dma.dropped)]
+        # The host's status register fields (read here, as the CPU reads them).
+        status = sdio._status.f
+        errors = Cat(Value.cast(status.cmd.r_data), Value.cast(status.write.r_data),
+                     Value.cast(status.read.r_data), status.busy_timeout.r_data)
+        errors_before = Signal.like(errors)
+        m.d.sync += errors_before.eq(errors)
+        m.d.comb += [
+            self.dma_done.eq(dma_busy & ~dma.busy),
+            self.ring_overflow.eq(dropped != ring.dma.dropped),
+            self.sd_error.eq((errors & ~errors_before).any()),
+        ]
         return m

@@ -74,7 +74,7 @@ def test_abort_of_a_ring_write_reads_out_the_asked_sector():
         async def monitor(ctx):
             while True:
                 _, _, valid, ready, payload = await ctx.tick().sample(
-                    dut.ring_o.valid, dut.ring_o.ready, dut.ring_o.payload)
+                    dut.ring.data.valid, dut.ring.data.ready, dut.ring.data.payload)
                 if valid and ready:
                     from_ring.append(payload)
         return monitor
@@ -82,21 +82,21 @@ def test_abort_of_a_ring_write_reads_out_the_asked_sector():
     async def script(ctx, dut, bus, regs, out):
         await bus.write(regs["control"].address, regs["control"].encode(
             start=1, source=DmaSource.RING.value, sectors=3, first=2))
-        await ctx.tick().until(dut.ring_read_start)
-        asked = ctx.get(dut.ring_read_sector)
+        await ctx.tick().until(dut.ring.read_start)
+        asked = ctx.get(dut.ring.read_sector)
         # The SD host takes 100 bytes, then the write fails and the firmware aborts.
-        ctx.set(dut.ring_reading, 1)
+        ctx.set(dut.ring.reading, 1)
         for k in range(100):
-            ctx.set(dut.ring_o.payload, k)
-            ctx.set(dut.ring_o.valid, 1)
-            await ctx.tick().until(dut.ring_o.ready)
-        ctx.set(dut.ring_o.payload, 0xAB)       # what the ring offers from here on
+            ctx.set(dut.ring.data.payload, k)
+            ctx.set(dut.ring.data.valid, 1)
+            await ctx.tick().until(dut.ring.data.ready)
+        ctx.set(dut.ring.data.payload, 0xAB)       # what the ring offers from here on
         await bus.write(regs["control"].address, regs["control"].encode(abort=1))
         # The rest of the asked sector is read from the ring and dropped, then the DMA stops.
         while regs["status"].decode(await bus.read(regs["status"].address))["busy"]:
             await ctx.tick()
-        ctx.set(dut.ring_o.valid, 0)
-        ctx.set(dut.ring_reading, 0)
+        ctx.set(dut.ring.data.valid, 0)
+        ctx.set(dut.ring.reading, 0)
         await ctx.tick().repeat(4)
         status = regs["status"].decode(await bus.read(regs["status"].address))
         return asked, status
@@ -112,3 +112,31 @@ def test_abort_of_a_ring_write_reads_out_the_asked_sector():
     assert 100 <= len(out) < SECTOR
     assert list(out) == from_ring[:len(out)]
     assert from_ring[len(out):] == [0xAB] * (SECTOR - len(out))
+
+
+def test_clear_and_release_reach_the_ring_and_busy_follows_status():
+    strobes = []
+
+    def ring_monitor(dut):
+        async def monitor(ctx):
+            while True:
+                _, _, clear, release, sectors = await ctx.tick().sample(
+                    dut.ring.clear, dut.ring.release, dut.ring.release_sectors)
+                if clear or release:
+                    strobes.append(("clear" if clear else "release", sectors if release else 0))
+        return monitor
+
+    async def script(ctx, dut, bus, regs, out):
+        await bus.write(regs["control"].address, regs["control"].encode(clear=1))
+        await bus.write(regs["release"].address, 3)
+        await bus.write(regs["control"].address, regs["control"].encode(clear=0, arm_read=1))
+        idle = ctx.get(dut.busy)
+        await bus.write(regs["control"].address, regs["control"].encode(
+            start=1, source=DmaSource.RING.value, sectors=1))
+        busy = ctx.get(dut.busy)
+        status = regs["status"].decode(await bus.read(regs["status"].address))
+        return idle, busy, status["busy"]
+
+    (idle, busy, status_busy), _ = run(script, extra=[ring_monitor])
+    assert strobes == [("clear", 0), ("release", 3)]
+    assert (idle, busy, status_busy) == (0, 1, 1)

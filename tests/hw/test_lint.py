@@ -32,15 +32,19 @@ from maglog.hw.ringbuffer import RingBuffer
 from maglog.hw.sdio.host import SdioHost
 from maglog.hw.sdram import SdramController
 from maglog.hw.storage import Storage
+from maglog.hw.top import Logger, component_verilog
+from maglog.hw.top import generate_verilog as logger_verilog
 from maglog.sim.amaranth_tb import CLOCK_HZ
 from maglog.sim.cocotb_run import (VERILATOR_WAIVERS, CocotbBuild, simulator_environment,
                                    verilator_bin_dir, verilator_waiver_args)
 
-#: Every top converted for cocotb or the CLI: name → Verilog text. The front end in both
-#: configurations the project builds (the logger's three channels, one PMAG line as the
-#: benchmarks use, and four NMEA lines for
+#: Every top converted for cocotb or the CLI: name → Verilog text. The whole logger (as
+#: `maglog hdl verilog` writes it), the front end in the configurations the project builds
+#: (the logger's three channels, one PMAG line as the benchmarks use, and four NMEA lines for
 #: the captures), the SDRAM controller as its cocotb test and the logger configure it.
+#: (Blocks with an ``always_ready`` stream go through ``component_verilog``.)
 TOPS = {
+    "maglog_logger": lambda: logger_verilog(Logger()),
     TOPLEVEL_NAME: lambda: generate_verilog(FrontEnd(DEFAULT_CHANNELS)),
     "maglog_frontend_pmag1": lambda: verilog.convert(
         FrontEnd([ChannelConfig(ChannelKind.PMAG, 115200)]), name="maglog_frontend_pmag1"),
@@ -51,11 +55,11 @@ TOPS = {
         SdramController(IS42S16160, clk_freq=CLOCK_HZ, cas_latency=3), name="maglog_sdram"),
     "maglog_sdram_mt48": lambda: verilog.convert(
         SdramController(MT48LC4M32B2, clk_freq=CLOCK_HZ), name="maglog_sdram_mt48"),
-    "maglog_storage": lambda: verilog.convert(
+    "maglog_storage": lambda: component_verilog(
         Storage(MT48LC4M32B2, clk_freq=CLOCK_HZ), name="maglog_storage"),
-    "maglog_dma": lambda: verilog.convert(Dma(), name="maglog_dma"),
-    "maglog_ringbuffer": lambda: verilog.convert(RingBuffer(MT48LC4M32B2.geometry),
-                                                 name="maglog_ringbuffer"),
+    "maglog_dma": lambda: component_verilog(Dma(), name="maglog_dma"),
+    "maglog_ringbuffer": lambda: component_verilog(RingBuffer(MT48LC4M32B2.geometry),
+                                                   name="maglog_ringbuffer"),
 }
 
 WARNING = re.compile(r"^%Warning-(?P<category>[A-Z0-9_]+): (?P<message>.*)$", re.M)

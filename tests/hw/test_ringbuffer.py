@@ -57,24 +57,24 @@ def run(chip, capacity, script):
         ctx.set(ring.i.valid, 0)
 
     async def read_sector(ctx, index):
-        ctx.set(ring.read_sector, index)
-        ctx.set(ring.read_start, 1)
+        ctx.set(ring.dma.read_sector, index)
+        ctx.set(ring.dma.read_start, 1)
         await ctx.tick()
-        ctx.set(ring.read_start, 0)
-        ctx.set(ring.o.ready, 1)
+        ctx.set(ring.dma.read_start, 0)
+        ctx.set(ring.dma.data.ready, 1)
         data = bytearray()
         while len(data) < SECTOR:
-            _, _, valid, byte = await ctx.tick().sample(ring.o.valid, ring.o.payload)
+            _, _, valid, byte = await ctx.tick().sample(ring.dma.data.valid, ring.dma.data.payload)
             if valid:
                 data.append(byte)
-        ctx.set(ring.o.ready, 0)
+        ctx.set(ring.dma.data.ready, 0)
         return bytes(data)
 
     async def release(ctx, sectors):
-        ctx.set(ring.release_sectors, sectors)
-        ctx.set(ring.release, 1)
+        ctx.set(ring.dma.release_sectors, sectors)
+        ctx.set(ring.dma.release, 1)
         await ctx.tick()
-        ctx.set(ring.release, 0)
+        ctx.set(ring.dma.release, 0)
 
     class Ops:
         pass
@@ -102,9 +102,9 @@ def test_frames_come_out_as_sectors_with_padding(chip):
     async def script(ctx, ring, ops):
         for frame in frames:
             await ops.push(ctx, frame)
-        level = ctx.get(ring.level)
+        level = ctx.get(ring.dma.level)
         sectors = [await ops.read_sector(ctx, k) for k in range(-(-level // SECTOR))]
-        return level, sectors, ctx.get(ring.kept), ctx.get(ring.dropped)
+        return level, sectors, ctx.get(ring.dma.kept), ctx.get(ring.dma.dropped)
 
     level, sectors, kept, dropped = run(chip, 1 << 14, script)
     assert level == len(stream) and kept == 30 and dropped == 0
@@ -123,16 +123,16 @@ def test_full_ring_drops_whole_frames_and_keeps_unreleased_bytes():
     async def script(ctx, ring, ops):
         for frame in first:
             await ops.push(ctx, frame)
-        level_full = ctx.get(ring.level)
+        level_full = ctx.get(ring.dma.level)
         before = [await ops.read_sector(ctx, k) for k in range(capacity // SECTOR)]
-        dropped = ctx.get(ring.dropped)
+        dropped = ctx.get(ring.dma.dropped)
         # The card took two sectors: they are released and new frames fit again.
         await ops.release(ctx, 2)
         for frame in later:
             await ops.push(ctx, frame)
         after = [await ops.read_sector(ctx, k) for k in range(capacity // SECTOR)]
-        return (level_full, b"".join(before), dropped, ctx.get(ring.level), b"".join(after),
-                ctx.get(ring.kept), ctx.get(ring.dropped), ctx.get(ring.high_water))
+        return (level_full, b"".join(before), dropped, ctx.get(ring.dma.level), b"".join(after),
+                ctx.get(ring.dma.kept), ctx.get(ring.dma.dropped), ctx.get(ring.dma.high_water))
 
     (level_full, before, dropped, level, after, kept, dropped_total,
      high_water) = run(chip, capacity, script)
@@ -166,3 +166,36 @@ def test_full_ring_drops_whole_frames_and_keeps_unreleased_bytes():
 def test_capacity_is_checked():
     with pytest.raises(ValueError, match="Capacity must be a power of two of whole sectors"):
         RingBuffer(MT48LC4M32B2.geometry, capacity=1000)
+
+
+def test_clear_empties_the_ring_and_the_counters_keep_counting():
+    chip = MT48LC4M32B2
+    rng = random.Random(4)
+    before = frames_of(rng, 12)
+    after = frames_of(rng, 5)
+
+    async def script(ctx, ring, ops):
+        for frame in before:
+            await ops.push(ctx, frame)
+        await ops.release(ctx, 1)
+        high_water = ctx.get(ring.dma.high_water)
+        ctx.set(ring.dma.clear, 1)
+        await ctx.tick()
+        ctx.set(ring.dma.clear, 0)
+        cleared = ctx.get(ring.dma.level)
+        for frame in after:
+            await ops.push(ctx, frame)
+        level = ctx.get(ring.dma.level)
+        sector = await ops.read_sector(ctx, 0)
+        return (high_water, cleared, level, sector, ctx.get(ring.dma.kept),
+                ctx.get(ring.dma.high_water))
+
+    high_water, cleared, level, sector, kept, high_water_after = run(chip, 1 << 14, script)
+    stream = b"".join(after)
+    assert high_water == len(b"".join(before)) > SECTOR
+    assert cleared == 0
+    # The new frames start at the ring's start, the read pointer there too.
+    assert level == len(stream)
+    assert sector[:level] == stream and sector[level:] == bytes(SECTOR - level)
+    assert kept == len(before) + len(after)
+    assert high_water_after == high_water

@@ -83,7 +83,8 @@ def run(batches, *, capacity, flush_between=True, channels=1):
     sdram = SdramChip(MT48LC4M32B2, clk_freq=CLK_FREQ)
     card = SdCard(CardImage(1 << 15), seed=3)
     pins = storage.sd
-    result = {}
+    result = {"flushes": 0}
+    strobes = {"dma_done": 0, "ring_overflow": 0, "sd_error": 0}
 
     pending = [[] for _ in range(channels)]
 
@@ -128,6 +129,7 @@ def run(batches, *, capacity, flush_between=True, channels=1):
                 return
             sectors = -(-level // SECTOR)
             await driver.write_from(lba, sectors, source)
+            result["flushes"] += 1
             full = level // SECTOR
             # Whole sectors are safe on the card: hand them back to the ring. The partial
             # one is written again, with more data, at the next flush.
@@ -148,13 +150,25 @@ def run(batches, *, capacity, flush_between=True, channels=1):
     async def sdram_side(ctx):
         await run_sdram(ctx, storage.sdram, sdram)
 
+    async def event_monitor(ctx):
+        names = list(strobes)
+        while True:
+            _, _, *values = await ctx.tick().sample(*(getattr(storage, n) for n in names))
+            for name, value in zip(names, values):
+                strobes[name] += value
+
     async def card_side(ctx):
         await run_card(ctx, pins, card)
 
     run_simulation(chain, [firmware],
-                   background=[sdram_side, card_side] + [feeder(k) for k in range(channels)],
+                   background=[sdram_side, card_side, event_monitor] +
+                              [feeder(k) for k in range(channels)],
                    name="storage", clock_period=1 / CLK_FREQ)
     assert sdram.errors == [] and card.errors == []
+    # The SoC's event strobes: one DMA done per flush (each one DMA write), one overflow per
+    # dropped frame, and no SD error in a clean run.
+    assert strobes == {"dma_done": result["flushes"], "ring_overflow": result["dropped"],
+                       "sd_error": 0}
     return result, card.image
 
 
@@ -205,3 +219,28 @@ def test_frames_of_several_channels_arrive_whole_and_in_order():
         sent = [f for batch in batches for f in batch[k]]
         assert [f for f in frames if f[1:2] == b"AB"[k:k + 1]] == sent
     assert result["kept"] == sum(len(channel) for batch in batches for channel in batch)
+
+
+def test_sd_error_strobes_when_a_command_times_out():
+    """No card: the CMD line stays high, the response times out, and ``sd_error`` pulses
+    once as the command ends (and not again while the error bit stays set)."""
+    storage = Storage(MT48LC4M32B2, clk_freq=CLK_FREQ, capacity=1024)
+    seen = {}
+
+    async def firmware(ctx):
+        bus = CsrBus(ctx, storage.bus, clock_period=1 / CLK_FREQ)
+        sd = RegisterMap(storage.bus.memory_map, window="sdio")
+        await bus.write(sd["clock"].address, sd["clock"].encode(divisor=0))
+        await bus.write(sd["timeouts"].address, sd["timeouts"].encode(response=8))
+        pulses = 0
+        await bus.write(sd["command"].address, sd["command"].encode(
+            index=13, kind=arch_sd.ResponseKind.SHORT.value))
+        for _ in range(400):
+            _, _, pulse = await ctx.tick().sample(storage.sd_error)
+            pulses += pulse
+        seen["pulses"] = pulses
+        seen["status"] = sd["status"].decode(await bus.read(sd["status"].address))
+
+    run_simulation(storage, [firmware], name="sd_error", clock_period=1 / CLK_FREQ)
+    assert seen["status"]["cmd.timeout"] == 1 and seen["status"]["cmd_busy"] == 0
+    assert seen["pulses"] == 1
