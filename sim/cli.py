@@ -165,21 +165,35 @@ def _write_output(output, text, what):
     _progress(f"wrote {path} ({what})")
 
 
+def _logger_from(args):
+    from ..hw.top import Logger
+    try:
+        return Logger(args.channels, clk_freq=args.clk_freq, max_frame=args.max_frame,
+                      fifo_depth=args.fifo_depth)
+    except (TypeError, ValueError) as error:
+        raise CliError(str(error)) from None
+
+
 def _cmd_hdl_verilog(args):
-    from ..hw.frontend import generate_verilog
-    text = generate_verilog(_front_end_from(args))
+    if args.frontend:
+        from ..hw.frontend import TOPLEVEL_NAME, generate_verilog
+        text = generate_verilog(_front_end_from(args))
+    else:
+        from ..hw.top import TOPLEVEL_NAME, generate_verilog
+        text = generate_verilog(_logger_from(args))
     _write_output(args.output, text,
-                  f"{len(text.splitlines())} lines, top module maglog_frontend")
+                  f"{len(text.splitlines())} lines, top module {TOPLEVEL_NAME}")
 
 
 def _cmd_hdl_regmap(args):
-    from ..hw.sdio.host import SdioHost
+    from ..hw.top import Logger
     from ..sw.regmap import RegisterMap, to_c_header, to_markdown
-    regs = RegisterMap(SdioHost().bus.memory_map)
+    memory_map = Logger().csr_memory_map
+    regs = RegisterMap(memory_map)
     if args.format == "markdown":
-        text = to_markdown(regs, title="SD host registers")
+        text = to_markdown(regs, title="Logger registers", memory_map=memory_map)
     else:
-        text = to_c_header(regs, prefix="sdio")
+        text = to_c_header(regs, prefix="maglog")
     _write_output(args.output, text, f"{len(list(regs))} registers")
 
 
@@ -369,14 +383,18 @@ def _parser():
 
     hdl = commands.add_parser("hdl", help="generate hardware description")
     hdl_commands = hdl.add_subparsers(dest="hdl_command", metavar="WHAT", required=True)
-    verilog = hdl_commands.add_parser("verilog", help="write the front end's Verilog")
+    verilog = hdl_commands.add_parser(
+        "verilog", help="write the logger's Verilog (module maglog_logger), or the front end's")
     verilog.add_argument("-o", "--output", default="-",
                          help="output file (default: standard output)")
+    verilog.add_argument("--frontend", action="store_true",
+                         help="write the serial front end alone (module maglog_frontend)")
     verilog.add_argument("--channels", type=_channels_arg, default=DEFAULT_CHANNELS,
                          help="channels in uart_rx order as KIND:BAUD,... with KIND one of "
                               "pmag, nmea, cesium (default: pmag:115200,nmea:9600,cesium:9600)")
     verilog.add_argument("--clk-freq", type=_float_in(*CLK_FREQ_RANGE), default=50e6,
-                         help="system clock in Hz, for the reset baud divisors "
+                         help="system clock in Hz, for the reset baud divisors and the "
+                              "logger's SDRAM timing, RTC, watchdog and debounce "
                               f"({CLK_FREQ_RANGE[0]:g} to {CLK_FREQ_RANGE[1]:g}; default: 50e6)")
     verilog.add_argument("--max-frame", type=_int_in(1, arch_frames.MAX_FRAME_LIMIT),
                          default=arch_frames.DEFAULT_MAX_FRAME,
@@ -388,7 +406,8 @@ def _parser():
     verilog.set_defaults(func=_cmd_hdl_verilog)
 
     regmap = hdl_commands.add_parser(
-        "regmap", help="write the register map (from the memory map) as Markdown or a C header")
+        "regmap", help="write the logger's register map (every window, from the memory map) "
+                       "as Markdown or a C header")
     regmap.add_argument("--format", choices=("markdown", "c"), default="markdown",
                         help="output format (default: %(default)s)")
     regmap.add_argument("-o", "--output", default="-",

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from amaranth.hdl import Shape
 
 
-__all__ = ["Field", "Register", "RegisterMap", "to_markdown", "to_c_header"]
+__all__ = ["Field", "Register", "RegisterMap", "windows", "to_markdown", "to_c_header"]
 
 
 @dataclass(frozen=True)
@@ -123,11 +123,29 @@ class RegisterMap:
         return iter(self._registers.values())
 
 
-def to_markdown(regmap, *, title):
-    """The register map as a Markdown page: a table of registers, then their fields."""
+def windows(memory_map, *, base=0):
+    """The named windows of a memory map: ``{name: (first, end)}`` word addresses, ``end``
+    excluded; a nameless window's own windows count as the map's."""
+    found = {}
+    for window, name, (start, end, _ratio) in memory_map.windows():
+        if name is None:
+            found.update(windows(window, base=base + start))
+        else:
+            found["_".join(str(p) for p in name)] = (base + start, base + end)
+    return found
+
+
+def to_markdown(regmap, *, title, memory_map=None):
+    """The register map as a Markdown page: the windows of ``memory_map`` (when given), a
+    table of registers, then their fields."""
     lines = [f"# {title}", "", "Generated from the gateware's memory map by "
-             "`maglog hdl regmap`; word addresses, 32-bit registers.", "",
-             "| address | register | access | description |", "|---:|---|---|---|"]
+             "`maglog hdl regmap`; word addresses, 32-bit registers.", ""]
+    if memory_map is not None:
+        lines += ["| window | first | last |", "|---|---:|---:|"]
+        lines += [f"| `{name}` | {start:#04x} | {end - 1:#04x} |"
+                  for name, (start, end) in windows(memory_map).items()]
+        lines.append("")
+    lines += ["| address | register | access | description |", "|---:|---|---|---|"]
     for reg in regmap:
         lines.append(f"| {reg.address:#04x} | `{reg.name}` | {reg.access} | {reg.doc} |")
     for reg in regmap:

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -13,11 +14,26 @@ from maglog.sim import cli
 from maglog.sim.cli import main
 
 
-def test_hdl_verilog_writes_the_front_end(tmp_path, capsys):
-    out = tmp_path / "fe.v"
+def test_hdl_verilog_writes_the_logger(tmp_path, capsys):
+    out = tmp_path / "logger.v"
     assert main(["hdl", "verilog", "-o", str(out), "--channels", "nmea:9600,pmag:115200"]) == 0
+    assert "top module maglog_logger" in capsys.readouterr().err
     text = out.read_text()
-    assert "module maglog_frontend" in text
+    header = re.search(r"^module maglog_logger\(([^)]*)\);", text, re.M)
+    ports = {name.strip() for name in header.group(1).split(",")}
+    assert {"clk", "rst", "uart_rx", "sd_cmd_oe", "sdram_dq_i", "led", "button", "wb_adr",
+            "wb_ack"} <= ports
+    assert "module maglog_frontend" not in text
+    assert "input [1:0] uart_rx;" in text
+
+
+def test_hdl_verilog_frontend_writes_the_front_end_alone(tmp_path, capsys):
+    out = tmp_path / "fe.v"
+    assert main(["hdl", "verilog", "--frontend", "-o", str(out),
+                 "--channels", "nmea:9600,pmag:115200"]) == 0
+    assert "top module maglog_frontend" in capsys.readouterr().err
+    text = out.read_text()
+    assert "module maglog_frontend" in text and "module maglog_logger" not in text
     for port in ("clk", "rst", "uart_rx", "o__valid", "counters__1__kept"):
         assert port in text
 
@@ -57,9 +73,17 @@ def test_unwritable_output(tmp_path, capsys):
 
 def test_regmap_formats(capsys):
     assert main(["hdl", "regmap"]) == 0
-    assert "| 0x07 | `status` | r |" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    # Every window, registers named window_register.
+    assert "| `logger` | 0x40 | 0x43 |" in out
+    assert "| 0x07 | `sdio_status` | r |" in out
+    assert "| 0x24 | `frontend_ch0_overlong` | r |" in out
+    assert "| 0x54 | `events_status` | rw |" in out
     assert main(["hdl", "regmap", "--format", "c"]) == 0
-    assert "#define SDIO_COMMAND_ADDR 0x2u" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "#define MAGLOG_SDIO_COMMAND_ADDR 0x2u" in out
+    assert "#define MAGLOG_DMA_CONTROL_CLEAR_SHIFT 28u" in out
+    assert "#define MAGLOG_LOGGER_ID_ADDR 0x40u" in out
 
 
 def test_demo_on_the_amaranth_backend(tmp_path, capsys):
