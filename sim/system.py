@@ -28,7 +28,7 @@ from .reference import Kind, reference_filter
 from .uart_line import encode
 
 
-__all__ = ["Burst", "SystemScenario", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
+__all__ = ["Burst", "SystemScenario", "SystemResult", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
 
 #: Bit times of one 8N1 character on the line: start, 8 data, stop.
 UART_FRAME_BITS = 10
@@ -83,6 +83,28 @@ class SystemScenario:
             for a, b in zip(ordered, ordered[1:]):
                 if b.start < a.end(baud):
                     raise ValueError(f"Bursts of channel {k} overlap at {b.start:.6f} s")
+
+    def to_json(self):
+        """A JSON-able dict (for a simulator run in another process); see
+        :meth:`from_json`."""
+        return {"channels": [[c.kind.value, c.baud] for c in self.channels],
+                "clk_freq": self.clk_freq,
+                "bursts": [[b.channel, b.start, b.data.hex()] for b in self.bursts],
+                "presses": list(self.presses), "until": self.until, "hold": self.hold,
+                "debounce_s": self.debounce_s, "max_frame": self.max_frame,
+                "timestamp": None if self.timestamp is None else self.timestamp.isoformat()}
+
+    @classmethod
+    def from_json(cls, data):
+        return cls(channels=tuple(ChannelConfig(ChannelKind(kind), baud)
+                                  for kind, baud in data["channels"]),
+                   clk_freq=data["clk_freq"],
+                   bursts=[Burst(k, start, bytes.fromhex(text))
+                           for k, start, text in data["bursts"]],
+                   presses=list(data["presses"]), until=data["until"], hold=data["hold"],
+                   debounce_s=data["debounce_s"], max_frame=data["max_frame"],
+                   timestamp=None if data["timestamp"] is None
+                   else _dt.datetime.fromisoformat(data["timestamp"]))
 
     def channel_bursts(self, channel):
         return sorted((b for b in self.bursts if b.channel == channel), key=lambda b: b.start)
@@ -187,6 +209,18 @@ def _pmag_frames(rng, count, seq0):
         x, y, z = (rng.uniform(-50_000, 50_000) for _ in range(3))
         frames.append(sentences.pmag1((seq0 + n) % 100_000, x, y, z))
     return frames
+
+
+@dataclass
+class SystemResult:
+    """What a system run leaves: the card, the LEDs at the end, the simulated and
+    wall-clock seconds, and the models' protocol findings."""
+    image: object
+    led: int = 0
+    seconds: float = 0.0
+    wall_seconds: float = 0.0
+    sdram_errors: list = field(default_factory=list)
+    card_errors: list = field(default_factory=list)
 
 
 class _Timeline:

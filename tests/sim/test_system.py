@@ -104,3 +104,13 @@ def test_pin_changes_carry_every_byte_and_the_presses():
     assert edges == [(round(p * s.clk_freq), 1) if n % 2 == 0 else
                      (round((s.presses[n // 2] + s.hold) * s.clk_freq), 0)
                      for n, p in enumerate(x for p in s.presses for x in (p, p))]
+
+
+def test_a_scenario_survives_json():
+    import json
+    s = short_scenario(seed=3)
+    back = SystemScenario.from_json(json.loads(json.dumps(s.to_json())))
+    assert back.pin_changes() == s.pin_changes()
+    assert back.recorded_frames() == s.recorded_frames()
+    assert (back.until, back.hold, back.debounce_s, back.timestamp) == (
+        s.until, s.hold, s.debounce_s, s.timestamp)
