@@ -223,6 +223,7 @@ class LoggerModel:
 
         self.now = 0
         self._queue, self._seq = [], 0
+        self._next_due = -1             # no event before this cycle (-1: look)
         self._epoch = 0
         self._until = None
         self._power_off = False
@@ -232,7 +233,8 @@ class LoggerModel:
         self._fe_taken = [0] * len(self.channels)
         self._leds = [(0.0, 0)]
         self._rtc_base, self._rtc_set, self._rtc_latched = 0, 0, 0
-        self._wd_enable, self._wd_timeout, self._wd_cause, self._wd_gen = 0, 1000, 0, 0
+        self._wd_enable, self._wd_timeout, self._wd_cause = 0, 1000, 0
+        self._wd_deadline = _INF
         self._btn_input = self._btn_sync = 0
         self._btn_gen = 0
         self._flush_times = []
@@ -256,15 +258,18 @@ class LoggerModel:
         self._seq += 1
         heapq.heappush(self._queue, (when, self._seq, fn, args,
                                      self._epoch if hardware else None))
+        self._next_due = min(self._next_due, when)
 
     def _heads(self):
+        """The times of the next front-end decision, gate step, queued event and watchdog
+        expiry."""
         if self._fe_dirty:
             self._rebuild_frontend()
         t_fe = self._fe[self._fe_pos].time if self._fe_pos < len(self._fe) else _INF
         path = self._path
         t_path = (path[0][0] if path[0][1] is None else path[0][1]) if path else _INF
         t_queue = self._queue[0][0] if self._queue else _INF
-        return t_fe, t_path, t_queue
+        return t_fe, t_path, t_queue, self._wd_deadline
 
     def _next_event_time(self):
         """The first cycle after now at which a register may read differently."""
@@ -284,27 +289,43 @@ class LoggerModel:
         if self._until is not None and target >= self._until:
             self._advance_to(self._until)
             raise SimulationEnd(f"the run reached {self.now_s} s")
+        if target < self._next_due:         # nothing happens before: a register access
+            self.now = max(self.now, target)
+            return
         self._advance_to(target)
 
     def _advance_to(self, target):
+        # (The heads of _heads, inlined: this runs twice for every register access.)
+        fe, path, queue = self._fe, self._path, self._queue
         while True:
-            t_fe, t_path, t_queue = self._heads()
-            t = min(t_fe, t_path, t_queue)
+            if self._fe_dirty:
+                self._rebuild_frontend()
+                fe = self._fe
+            t_fe = fe[self._fe_pos].time if self._fe_pos < len(fe) else _INF
+            t_path = (path[0][0] if path[0][1] is None else path[0][1]) if path else _INF
+            t_queue = queue[0][0] if queue else _INF
+            t = min(t_fe, t_path, t_queue, self._wd_deadline)
             if t > target:
+                # Until then nothing happens, unless something new is scheduled earlier
+                # (_schedule, a kick and feed lower this; lower than true is only slower).
+                self._next_due = t
                 break
             if t > self.now:
                 self.now = t
             if t_fe == t:
-                decision = self._fe[self._fe_pos]
+                decision = fe[self._fe_pos]
                 self._fe_pos += 1
                 self._fe_taken[decision.channel] += 1
                 self._decide(decision)
             elif t_path == t:
                 self._pass_gate()
-            else:
-                _, _, fn, args, epoch = heapq.heappop(self._queue)
+            elif t_queue == t:
+                _, _, fn, args, epoch = heapq.heappop(queue)
                 if epoch is None or epoch == self._epoch:
                     fn(*args)
+            else:
+                self._watchdog_fire()
+            path = self._path               # (a reset makes a new one)
         if target > self.now:
             self.now = target
 
@@ -322,6 +343,7 @@ class LoggerModel:
         self._lines[channel].feed(data, start=start,
                                   baud=self.channels[channel].baud if baud is None else baud)
         self._fe_dirty = True
+        self._next_due = -1
 
     def press_button(self, at, *, hold=0.2):
         """The button goes down at ``at`` seconds for ``hold`` seconds."""
@@ -457,19 +479,19 @@ class LoggerModel:
                 self._cut_after = None
                 self._power_cut()
 
-    def _watchdog_fire(self, generation):
-        if generation != self._wd_gen or not self._wd_enable:
-            return
+    def _watchdog_fire(self):
         self._wd_enable, self._wd_cause = 0, 1
+        self._wd_deadline = _INF
         self.resets += 1
         self._reset_hardware()
         raise HardwareReset(f"watchdog reset at {self.now_s} s")
 
     def _watchdog_restart(self):
-        self._wd_gen += 1
-        if self._wd_enable:
-            self._schedule(self.now + self._wd_timeout * self._prescaler + 2,
-                           self._watchdog_fire, self._wd_gen, hardware=False)
+        """A kick or a write of ``control``: the count starts again (the watchdog is
+        outside the logger's reset, so its expiry is kept apart from the event queue)."""
+        self._wd_deadline = self.now + self._wd_timeout * self._prescaler + 2 \
+            if self._wd_enable else _INF
+        self._next_due = min(self._next_due, self._wd_deadline)
 
     # -- front end, record gate, ring -----------------------------------------------------------
 
@@ -582,6 +604,7 @@ class LoggerModel:
             if window not in windows:
                 windows.append(window)
         self._registers = {}
+        self._checked = set()           # registers whose fields have been compared
         for window in windows:
             for reg in RegisterMap(memory_map, window=window):
                 read, write = self._handlers(window, reg.name)
@@ -630,10 +653,12 @@ class LoggerModel:
         self._advance(start + ACCESS_CYCLES)
         if fields is None:
             return 0
-        extra = set(fields) - set(reg.fields)
-        if extra:
-            raise KeyError(f"The model gives {window}.{reg.name} fields the gateware lacks: "
-                           f"{', '.join(sorted(extra))}")
+        if reg.address not in self._checked:
+            extra = set(fields) - set(reg.fields)
+            if extra:
+                raise KeyError(f"The model gives {window}.{reg.name} fields the gateware "
+                               f"lacks: {', '.join(sorted(extra))}")
+            self._checked.add(reg.address)
         word = 0
         for name, f in reg.fields.items():
             try:
