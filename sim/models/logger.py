@@ -30,6 +30,7 @@ from __future__ import annotations
 import heapq
 import math
 import re
+import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -43,10 +44,11 @@ from ...sw.regmap import RegisterMap
 from .logger_frontend import ChannelLine, parse_zda
 from .logger_sd import ModelCard
 from .logger_storage import StoragePath
+from ..system import SystemResult
 
 
 __all__ = ["LoggerModel", "ModelBus", "RunResult", "SimulationEnd", "ACCESS_CYCLES",
-           "RING_BYTE_CYCLES", "logger_memory_map"]
+           "RING_BYTE_CYCLES", "logger_memory_map", "run_system"]
 
 #: System clocks per register access. The Logger's WishboneCSRBridge (32-bit CSRs, a 32-bit
 #: Wishbone bus of granularity 32) strobes the CSR bus in the access's first cycle, registers
@@ -763,3 +765,22 @@ class LoggerModel:
     def _r_gps_status(self):
         return {"valid": int(self._gps is not None)}
 
+
+
+def run_system(scenario, firmware, image, *, card_seed=0, ring_capacity=None, **card_options):
+    """Run a :class:`~maglog.sim.system.SystemScenario` on the model, as
+    :func:`maglog.sim.system_amaranth.run_system` runs it on the gateware: ``firmware(bus,
+    memory_map, sys_clock_hz)`` until ``scenario.until``, the card holding ``image``
+    (changed in place). Returns a :class:`~maglog.sim.system.SystemResult`."""
+    model = LoggerModel(image, clk_freq=scenario.clk_freq, channels=scenario.channels,
+                        ring_capacity=ring_capacity, max_frame=scenario.max_frame,
+                        debounce_s=scenario.debounce_s, seed=card_seed, **card_options)
+    for burst in scenario.bursts:
+        model.feed(burst.channel, burst.data, start=burst.start)
+    for press in scenario.presses:
+        model.press_button(press, hold=scenario.hold)
+    start = time.perf_counter()
+    result = model.run(lambda bus: firmware(bus, model.memory_map, scenario.clk_freq),
+                       until=scenario.until)
+    return SystemResult(image=image, led=result.leds[-1][1], seconds=result.end,
+                        wall_seconds=time.perf_counter() - start)

@@ -22,7 +22,7 @@ from maglog.hw.storage import Storage
 from maglog.hw.top import EVENT_NAMES, Logger
 from maglog.sim import sentences
 from maglog.sim.models.card_image import CardImage
-from maglog.sim.models.logger import ACCESS_CYCLES, LoggerModel, RunResult
+from maglog.sim.models.logger import ACCESS_CYCLES, LoggerModel, RunResult, run_system
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.streams import CESIUM_RATE_HZ, GPS_RATE_HZ, MAG_RATE_HZ, demo_streams
 from maglog.sim.system import short_scenario
@@ -172,6 +172,42 @@ def test_driver_flushes_the_ring_to_exactly_the_frames_the_reference_keeps():
     assert data[len(expected):] == bytes(len(data) - len(expected))   # the padded tail
     assert level == len(expected) % SECTOR
     assert model.card.blocks_written >= fw.lba - FIRST_LBA
+
+
+def test_a_scenario_recorded_between_two_presses_is_on_the_card():
+    scenario = short_scenario(seed=1)
+    image = CardImage(1 << 16)
+    seen = {}
+
+    async def firmware(bus, memory_map, sys_clock_hz):
+        # The application loop in miniature: the button starts and stops a recording, each
+        # fix flushes, the stop flushes what is left.
+        model = bus._model
+        fw = Firmware(model)
+        assert memory_map is model.memory_map and sys_clock_hz == scenario.clk_freq
+        await fw.driver.initialise()
+        status = fw.reg("events.status")
+        for record in (1, 0):
+            while True:
+                events = status.decode(await bus.wait_event(status.address, bool, timeout=1))
+                await bus.write(status.address, await bus.read(status.address))
+                if events["fix"] and record == 0:
+                    await fw.flush()
+                if events["button"]:
+                    break
+            await fw.write("logger.control", record=record)
+        await bus.wait_event(fw.reg("logger.status").address, lambda w: not w & 1, timeout=1)
+        await fw.flush()
+        seen["level"] = await fw.read("dma.level")
+        while True:
+            await bus.wait(1.0)
+
+    result = run_system(scenario, firmware, image)
+    expected = b"".join(scenario.recorded_frames())
+    data = card_bytes(image, FIRST_LBA, -(-len(expected) // SECTOR))
+    assert data == expected + bytes(len(data) - len(expected))
+    assert result.seconds == pytest.approx(scenario.until) and result.led == 0
+    assert seen["level"] == len(expected) % SECTOR
 
 
 def test_front_end_counters_match_the_reference_filter():
