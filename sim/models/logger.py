@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 from ...hw.arch import sd as arch_sd
 from ...hw.arch import sdram as arch_sdram
+from ...hw.arch import frames as arch_frames
 from ...hw.arch.frames import COUNTER_NAMES
 from ...hw.frontend import DEFAULT_CHANNELS, ChannelConfig
 from ...hw.top import EVENT_NAMES, GPS_CHANNEL, LOGGER_ID, Logger
@@ -55,11 +56,10 @@ __all__ = ["LoggerModel", "ModelBus", "RunResult", "SimulationEnd", "ACCESS_CYCL
 #: the read data and raises ``ack`` in the second, and the master sees ``ack`` in the third;
 #: one more for the master to start its next cycle.
 ACCESS_CYCLES = 4
-#: System clocks per byte into the SDRAM ring: one masked word write per byte (activate,
-#: write, precharge with the presets' tRCD, tWR and tRP at 50 MHz), about 8 clocks.
-RING_BYTE_CYCLES = 8
-#: The SDRAM chip of the logger boards (DESIGN.md): the ring's default capacity is all of it.
-SDRAM_CHIP = arch_sdram.MT48LC4M32B2
+#: System clocks per byte from the frame FIFO through the gate into the SDRAM ring: one
+#: masked word write per byte, one a clock while the controller keeps the row open (an
+#: activate or a refresh now and then costs a few clocks more, not modelled).
+RING_BYTE_CYCLES = 1
 
 _BLOCK = arch_sd.BLOCK_BYTES
 _INF = math.inf
@@ -173,6 +173,8 @@ class LoggerModel:
         watchdog and every timer count it.
     channels : sequence of ChannelConfig
         The serial channels, as the gateware's ``channels``.
+    chip : arch.sdram.Chip
+        The SDRAM chip (its size bounds the ring; its initialisation delays ``sdram_ready``).
     ring_capacity : int or None
         Bytes of ring (a power of two of whole sectors); None: the whole SDRAM chip.
     max_frame : int
@@ -188,8 +190,9 @@ class LoggerModel:
         ``busy_range``, ``read_range``, ``power_up_s``, ``stop_busy_s``).
     """
     def __init__(self, card, *, clk_freq=50e6, channels=DEFAULT_CHANNELS, ring_capacity=None,
-                 max_frame=128, debounce_s=0.01, led_stretch_s=0.05, seed=0,
-                 memory_map=None, **card_options):
+                 chip=arch_sdram.MT48LC4M32B2, max_frame=arch_frames.DEFAULT_MAX_FRAME,
+                 debounce_s=0.01, led_stretch_s=0.05, seed=0, memory_map=None,
+                 **card_options):
         if isinstance(clk_freq, bool) or not isinstance(clk_freq, (int, float)) or \
                 not 1e3 <= clk_freq < _INF:
             raise ValueError(f"Clock frequency must be a number of Hz >= 1 kHz, not "
@@ -199,7 +202,7 @@ class LoggerModel:
                               for c in channels)
         if not self.channels:
             raise ValueError("The logger needs at least one channel")
-        chip_bytes = SDRAM_CHIP.geometry.words * SDRAM_CHIP.geometry.data_width // 8
+        chip_bytes = chip.geometry.words * chip.geometry.data_width // 8
         if ring_capacity is None:
             ring_capacity = chip_bytes
         if isinstance(ring_capacity, bool) or not isinstance(ring_capacity, int) or \
@@ -212,7 +215,7 @@ class LoggerModel:
         self.image = card
         self.card = ModelCard(card, seed=seed, **card_options)
         self.memory_map = memory_map if memory_map is not None else logger_memory_map(
-            channels=self.channels, clk_freq=clk_freq, ring_capacity=ring_capacity,
+            channels=self.channels, clk_freq=clk_freq, chip=chip, ring_capacity=ring_capacity,
             max_frame=max_frame, debounce_s=debounce_s, led_stretch_s=led_stretch_s)
         self._lines = [ChannelLine(k, c.kind, max_frame=max_frame, clk_freq=clk_freq)
                        for k, c in enumerate(self.channels)]
@@ -220,7 +223,7 @@ class LoggerModel:
         self._debounce = max(1, round(debounce_s * clk_freq))
         self._stretch = max(1, round(led_stretch_s * clk_freq))
         self._prescaler = round(clk_freq / 1000)
-        self._sdram_init = self._cycles(_sdram_init_s(SDRAM_CHIP))
+        self._sdram_init = self._cycles(_sdram_init_s(chip))
         self.bus = ModelBus(self)
 
         self.now = 0
@@ -237,7 +240,7 @@ class LoggerModel:
         self._rtc_base, self._rtc_set, self._rtc_latched = 0, 0, 0
         self._wd_enable, self._wd_timeout, self._wd_cause = 0, 1000, 0
         self._wd_deadline = _INF
-        self._btn_input = self._btn_sync = 0
+        self._btn_sync = 0
         self._btn_gen = 0
         self._flush_times = []
         self.storage = StoragePath(self, ring_capacity)
@@ -460,7 +463,6 @@ class LoggerModel:
         self._sdram_ready_at = now + self._sdram_init
         self.storage.reset()
         # SoC.
-        self._record_led = 0
         self._led_value = 0
         self._act_until = [now, now]
         self._act_pending = [False, False]
@@ -579,7 +581,6 @@ class LoggerModel:
             self._leds.append((self.now_s, led))
 
     def _button_input(self, level):
-        self._btn_input = level
         self._schedule(self.now + 2, self._button_synced, level, hardware=False)
 
     def _button_synced(self, level):

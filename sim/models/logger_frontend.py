@@ -1,12 +1,14 @@
 """The logger's serial front end at frame level, for the transaction-level model.
 
 Each channel's line carries bytes back to back from the start of each burst, one per ten
-bit times (8N1). What the gateware's UART receiver and frame filter make of them comes from
-the reference filter (sim/reference.py): the frames it keeps and its counters. This module
-places every decision in time: a kept frame at the stop bit of its line end, a dropped
-candidate at the byte on which the rules drop it (the byte-by-byte reading of
-docs/frame-rules.md, found by feeding the candidate to a fresh reference filter one byte at
-a time). A candidate still open when the line goes quiet gets no decision.
+bit times (8N1); the receiver has a byte at the middle of its stop bit
+(:data:`RECEIVED_BITS` after its start bit begins, as hw/uart.py's UartRx decides it). What
+the gateware's receiver and frame filter make of the bytes comes from the reference filter
+(sim/reference.py): the frames it keeps and its counters. This module places every decision
+in time: a kept frame at its line end, a dropped candidate at the byte on which the rules
+drop it (the byte-by-byte reading of docs/frame-rules.md, found by feeding the candidate to
+a fresh reference filter one byte at a time). A candidate still open when the line goes
+quiet gets no decision.
 """
 
 from __future__ import annotations
@@ -20,7 +22,13 @@ from ...hw.frame_filter import ChannelKind
 from ..reference import KEPT, Kind, ReferenceFilter, reference_filter
 
 
-__all__ = ["Decision", "ChannelLine", "parse_zda"]
+__all__ = ["Decision", "ChannelLine", "parse_zda", "RECEIVED_BITS"]
+
+#: Bit times from a byte's start bit to the receiver's decision on its stop bit: the last
+#: vote of the stop bit (tick 9 of 16 of bit 9), the start edge being seen half a tick late
+#: on average.
+RECEIVED_BITS = arch_uart.CHARACTER_BITS - 1 + \
+    (arch_uart.VOTE_TICKS[-1] + 0.5) / arch_uart.OVERSAMPLING
 
 _KIND = {ChannelKind.PMAG: Kind.PMAG, ChannelKind.NMEA: Kind.NMEA,
          ChannelKind.CESIUM: Kind.CESIUM}
@@ -77,7 +85,7 @@ class ChannelLine:
         self.kind = _KIND[ChannelKind(kind)]
         self.max_frame = max_frame
         self.clk_freq = clk_freq
-        self._bursts = []              # (start cycle, cycles per byte, data)
+        self._bursts = []   # (start cycle, cycles per byte, cycles to the first byte, data)
         self._end = 0                  # cycle after the last byte fed so far
         self._decisions = None
 
@@ -91,19 +99,20 @@ class ChannelLine:
             raise ValueError(f"Start must be a time in seconds >= 0, not {start!r}")
         first = round(start * self.clk_freq)
         per_byte = arch_uart.CHARACTER_BITS * self.clk_freq / baud
+        received = RECEIVED_BITS * self.clk_freq / baud
         if first < self._end:
             raise ValueError(f"Channel {self.channel}'s bytes from {start} s overlap those fed "
                              f"up to {self._end / self.clk_freq} s (feed each channel in "
                              f"order)")
         if data:
-            self._bursts.append((first, per_byte, bytes(data)))
+            self._bursts.append((first, per_byte, received, bytes(data)))
             self._end = first + round(len(data) * per_byte)
             self._decisions = None
 
     @property
     def data(self):
         """Every byte the line carried, in order."""
-        return b"".join(data for _, _, data in self._bursts)
+        return b"".join(data for *_, data in self._bursts)
 
     def decisions(self):
         """Every decision on the bytes fed so far, in time order."""
@@ -118,15 +127,15 @@ class ChannelLine:
     def _decide(self):
         bursts = self._bursts
         offsets, total = [], 0
-        for _, _, data in bursts:
+        for *_, data in bursts:
             offsets.append(total)
             total += len(data)
         text = self.data.decode("latin-1")
 
         def time_of(index):
             b = bisect.bisect_right(offsets, index) - 1
-            first, per_byte, _ = bursts[b]
-            return first + round((index - offsets[b] + 1) * per_byte)
+            first, per_byte, received, _ = bursts[b]
+            return first + round((index - offsets[b]) * per_byte + received)
 
         reference = self.reference()
         kept, flushes = reference.frames, set(reference.flushes)

@@ -23,6 +23,7 @@ from maglog.hw.top import EVENT_NAMES, Logger
 from maglog.sim import sentences
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.logger import ACCESS_CYCLES, LoggerModel, RunResult, run_system
+from maglog.sim.models.logger_frontend import RECEIVED_BITS
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.streams import CESIUM_RATE_HZ, GPS_RATE_HZ, MAG_RATE_HZ, demo_streams
 from maglog.sim.system import short_scenario
@@ -236,14 +237,16 @@ def test_record_gate_stores_only_frames_that_begin_while_recording():
     for n in range(10):
         model.feed(0, frame, start=0.01 * (n + 1))
     fw = Firmware(model)
-    byte_s = 10 / DEFAULT_CHANNELS[0].baud
+    baud = DEFAULT_CHANNELS[0].baud
+    byte_s = 10 / baud
 
     async def main():
         await fw.bus.wait(0.035)                              # frames 1-3 pass unrecorded
         await fw.write("logger.control", record=1)
         before = await fw.read("dma.level")
-        # Frame 4 ends at 0.04 s + its length: it is passing the gate into the ring then.
-        await fw.bus.wait(0.04 + len(frame) * byte_s - model.now_s + 1e-6)
+        # Frame 4 is received at its last stop bit: it passes the gate into the ring then.
+        await fw.bus.wait(0.04 + (len(frame) - 1) * byte_s + RECEIVED_BITS / baud
+                          - model.now_s)
         in_frame = await fw.read("logger.status", "in_frame")
         await fw.bus.wait(0.0655 - model.now_s)
         await fw.write("logger.control", record=0)           # frames 4-6 recorded
@@ -451,7 +454,8 @@ def test_activity_leds_follow_kept_frames_and_the_firmware_bits():
         await fw.bus.wait(0.01)
 
     model.call(main())
-    end_of_frame = 0.1 + len(sentences.pmag1(1, 1.0, 2.0, 3.0)) * 10 / 115200
+    frame = sentences.pmag1(1, 1.0, 2.0, 3.0)
+    end_of_frame = 0.1 + ((len(frame) - 1) * 10 + RECEIVED_BITS) / DEFAULT_CHANNELS[0].baud
     (t_on, on), (t_off, off), (t_fix, fix) = model.leds[1:]
     assert (on, off, fix) == (0b0010, 0, 0b1000)
     assert t_on == pytest.approx(end_of_frame, abs=1e-6)
