@@ -187,7 +187,8 @@ class LoggerModel:
         The gateware's CSR map; None: :func:`logger_memory_map` of these parameters.
     card_options :
         Passed to :class:`~maglog.sim.models.logger_sd.ModelCard` (``high_capacity``,
-        ``busy_range``, ``read_range``, ``power_up_s``, ``stop_busy_s``).
+        ``version``, ``pre_erase``, ``busy_range``, ``read_range``, ``power_up_s``,
+        ``stop_busy_s``).
     """
     def __init__(self, card, *, clk_freq=50e6, channels=DEFAULT_CHANNELS, ring_capacity=None,
                  chip=arch_sdram.MT48LC4M32B2, max_frame=arch_frames.DEFAULT_MAX_FRAME,

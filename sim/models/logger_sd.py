@@ -76,6 +76,10 @@ class ModelCard:
         Seeds the programming and read access times.
     high_capacity : bool
         OCR CCS: block addressing (SDHC/SDXC) or byte addressing (standard capacity).
+    version : int
+        2 (answers CMD8) or 1 (a Ver1.X card: CMD8 is illegal, always standard capacity).
+    pre_erase : bool
+        Whether ACMD23 is taken (some cards do not: it is then an illegal command).
     busy_range : (float, float)
         Programming time of a written block (DAT0 busy), seconds, uniform.
     read_range : (float, float)
@@ -90,14 +94,19 @@ class ModelCard:
                          (0x12345678).to_bytes(4, "big") + (0x01AB).to_bytes(2, "big") +
                          bytes(1), "big")
 
-    def __init__(self, image, *, seed=0, high_capacity=True, busy_range=(50e-6, 400e-6),
-                 read_range=(20e-6, 100e-6), power_up_s=5e-3, stop_busy_s=10e-6):
+    def __init__(self, image, *, seed=0, high_capacity=True, version=2, pre_erase=True,
+                 busy_range=(50e-6, 400e-6), read_range=(20e-6, 100e-6), power_up_s=5e-3,
+                 stop_busy_s=10e-6):
+        if version not in (1, 2):
+            raise ValueError(f"Card version must be 1 or 2, not {version!r}")
+        if version == 1 and high_capacity:
+            raise ValueError("A version 1 card is standard capacity: give high_capacity=False")
         for name, (low, high) in (("Busy range", busy_range), ("Read range", read_range)):
             if not 0 <= low <= high:
                 raise ValueError(f"{name} must be (low, high) seconds with 0 <= low <= high, "
                                  f"not {(low, high)!r}")
         self.image = image
-        self.high_capacity = high_capacity
+        self.high_capacity, self.version, self.pre_erase = high_capacity, version, pre_erase
         self.busy_range, self.read_range = busy_range, read_range
         self.power_up_s, self.stop_busy_s = power_up_s, stop_busy_s
         self._rng = random.Random(seed)
@@ -165,6 +174,8 @@ class ModelCard:
             self.power_on()
             return Answer(Response.NONE)
         if index == Command.SEND_IF_COND:
+            if self.version == 1:
+                raise _Illegal
             self._require(CardState.IDLE)
             if (argument & arch.IF_COND_VHS_MASK) >> arch.IF_COND_VHS_SHIFT \
                     != arch.IF_COND_VHS_2V7_3V6:
@@ -250,6 +261,8 @@ class ModelCard:
             self._require(CardState.TRAN)
             return self._r1(index, before, app=True)
         if index == AppCommand.SET_WR_BLK_ERASE_COUNT:
+            if not self.pre_erase:
+                raise _Illegal
             self._require(CardState.TRAN)
             return self._r1(index, before, app=True)
         raise _Illegal
