@@ -123,31 +123,40 @@ class DmaBufferPort(BlockPort):
 
 
 class DmaBlockDevice(BlockDevice):
-    """The card as a FAT32 block device, every block through the DMA's sector buffer."""
+    """The card as a FAT32 block device, every block through the DMA's sector buffer.
 
-    def __init__(self, driver, port):
+    ``before_block``, if given, is awaited before each block (the application kicks its
+    watchdog there: mounting a large card whose free count must be recounted reads every FAT
+    sector, for longer than a watchdog period)."""
+
+    def __init__(self, driver, port, *, before_block=None):
         self.driver, self.port = driver, port
+        self.before_block = before_block
 
     async def read_block(self, lba):
+        if self.before_block is not None:
+            await self.before_block()
         await self.port.arm_read()
         return await self.driver.read_block(lba)
 
     async def write_block(self, lba, data):
+        if self.before_block is not None:
+            await self.before_block()
         await self.driver.write_blocks(lba, bytes(data))
 
 
 class DmaStorage:
     """The logger's card path built from its memory map: the SD driver over the host's
     registers (window ``sdio``) with the sector buffer as its port, the block device, and
-    the ring's registers (window ``dma``)."""
+    the ring's registers (window ``dma``). ``before_block``: see :class:`DmaBlockDevice`."""
 
-    def __init__(self, bus, memory_map, *, sys_clock_hz):
+    def __init__(self, bus, memory_map, *, sys_clock_hz, before_block=None):
         self.bus = bus
         self.sdio = RegisterMap(memory_map, window="sdio")
         self.dma = RegisterMap(memory_map, window="dma")
         self.port = DmaBufferPort(bus, self.dma, self.sdio)
         self.driver = SdCardDriver(bus, self.sdio, self.port, sys_clock_hz=sys_clock_hz)
-        self.device = DmaBlockDevice(self.driver, self.port)
+        self.device = DmaBlockDevice(self.driver, self.port, before_block=before_block)
 
     def _limit(self, field):
         return 1 << self.dma["control"].field(field).width
