@@ -374,3 +374,43 @@ def test_blink_pattern():
     blink = Blink(mask=3, period_s=1.0, on_s=0.25)
     assert [blink.lit(t) for t in (0.0, 0.2, 0.3, 1.1, 1.9)] == [True, True, False, True,
                                                                    False]
+
+
+def test_a_failed_data_write_leaves_the_file_as_its_last_sync(tmp_path, fat_tools,
+                                                              monkeypatch):
+    # The third flush's ring write fails after its first block went to the card: the file
+    # must keep the size of the second flush (no metadata may point at the blocks that did
+    # not), the loop initialises the card again and resumes in a new file.
+    from maglog.sw import storage as sw_storage
+    from maglog.sw.sdcard import SdWriteError
+
+    real = sw_storage.DmaStorage.write_ring
+    calls = []
+
+    async def failing(self, lba, first, count):
+        calls.append(lba)
+        if len(calls) == 3:
+            await real(self, lba, first, 1)
+            raise SdWriteError(f"writing block {lba + 1} failed: injected", 1)
+        return await real(self, lba, first, count)
+
+    monkeypatch.setattr(sw_storage.DmaStorage, "write_ring", failing)
+    scenario = long_scenario(until=3.0, presses=(0.3, 2.8), stop=2.75)
+    model = model_of(scenario, blank_card(tmp_path))
+    sizes = []
+
+    async def watch(app, point):
+        if point == "flush":
+            sizes.append(app.file.size)
+
+    start, apps = firmware(model, AppSettings(fault=watch))
+    result = model.run(start, until=scenario.until)
+    (app,) = apps
+    assert app.state == State.IDLE and app.error == FwError.NONE
+    path = saved(result, tmp_path)
+    assert fsck_findings(fat_tools["fsck.fat"], path, tmp_path) == []
+    found = logs(path)
+    frames = scenario.recorded_frames()
+    assert sizes[2] > 0 and found["LOG00001.TXT"] == stream_of(frames)[:sizes[2]]
+    second = contiguous_frames(found["LOG00002.TXT"], frames)
+    assert second is not None and second[1] == len(frames)
