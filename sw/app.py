@@ -18,7 +18,8 @@ Decisions beyond the specification's letter:
   dirty (the file that was being written is kept as its last sync left it).
 * A full card ends the recording: what fitted is kept, the file is closed cleanly, and the
   loop waits in :attr:`State.FULL` for a button press to mount a card again.
-* A ring overflow (frames dropped) is counted in :attr:`LoggerApp.overflows`, shown as
+* A ring overflow (frames dropped) is counted in :attr:`LoggerApp.overflows` (events) and
+  :attr:`LoggerApp.dropped` (frames, from ``dma.dropped``), shown as
   :attr:`FwError.RING_OVERFLOW` and by LED1 blinking; the recording goes on.
 """
 
@@ -155,8 +156,11 @@ class LoggerApp:
         self.storage = None
         self.volume = None
         self.file = None
-        #: Ring overflow events seen while recording.
+        #: Ring overflow events seen while recording, and the frames the ring dropped in
+        #: this recording (``dma.dropped`` since its start).
         self.overflows = 0
+        self.dropped = 0
+        self._dropped_at_start = 0
         #: Flushes done (for tests and a debugger), and the last one's result.
         self.flushes = 0
         self.last_flush = None
@@ -290,6 +294,7 @@ class LoggerApp:
     async def _step_recording(self, events):
         if events["ring_overflow"]:
             self.overflows += 1
+            self.dropped = await self.storage.read("dropped") - self._dropped_at_start
             self._set_error(FwError.RING_OVERFLOW)
         if events["button"]:
             await self._stop_recording()
@@ -327,6 +332,8 @@ class LoggerApp:
     async def _start_recording(self):
         await self._quiesce()
         await self.storage.clear()
+        self._dropped_at_start = await self.storage.read("dropped")
+        self.dropped = 0
         try:
             self.file = await self.volume.create_log(await self._now())
         except FatNoNumberError as failure:
@@ -343,6 +350,7 @@ class LoggerApp:
 
     async def _stop_recording(self):
         await self._quiesce()
+        self.dropped = await self.storage.read("dropped") - self._dropped_at_start
         await self._flush()
         await self.file.close(await self._now())
         await self.storage.clear()

@@ -343,11 +343,15 @@ def test_ring_overflow_is_reported_and_recording_goes_on(tmp_path, fat_tools):
     kept = logs(path)["LOG00001.TXT"]
     frames = scenario.recorded_frames()
     # Whole frames only, in order, fewer than were sent, and the last ones are there.
-    rest = kept
+    rest, missing = kept, 0
     for frame in frames:
         if rest.startswith(frame):
             rest = rest[len(frame):]
+        else:
+            missing += 1
     assert rest == b"" and 0 < len(kept) < len(stream_of(frames))
+    # The frames missing are those the ring dropped.
+    assert app.dropped == missing > 0
     # Frames of the recording's last half second, long after the first overflow, are there.
     assert any(frame in kept for frame in frames[-100:])
     # While recording after the overflow LED1 blinked (the overflow pattern).
