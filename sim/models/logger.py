@@ -117,8 +117,7 @@ class ModelBus(RegisterBus):
         model = self._model
         deadline = self.now() + timeout
         pure = model._pure_read(address)
-        poll_cycles = model._cycles(poll)
-        period = ACCESS_CYCLES + poll_cycles
+        period = ACCESS_CYCLES + model._cycles(poll)
         deadline_cycles = math.ceil(deadline * model.clk_freq - 1e-6)
         while True:
             word = await self.read(address)
@@ -127,17 +126,19 @@ class ModelBus(RegisterBus):
             if self.now() >= deadline:
                 raise BusTimeout(f"{what} not reached within {timeout} s")
             if pure:
-                sample = model.now
-                change = model._next_event_time()
-                late = max(1, math.ceil((deadline_cycles - sample) / period))
-                # Read j after this one samples at sample + poll + 1 + (j - 1) * period.
+                # Read j after this one samples at sampled + j * period and ends
+                # ACCESS_CYCLES - 1 later; the first that can see a change at `change` is
+                # the j with sampled + j * period >= change.
+                sampled, done = model._sampled_at, model.now
+                change = model._next_event_time(after=sampled)
+                late = max(1, math.ceil((deadline_cycles - done) / period))
                 skip = late if change == _INF else \
-                    max(0, math.ceil((change - sample - poll_cycles - 1) / period))
+                    max(0, math.ceil((change - sampled) / period) - 1)
                 if late <= skip:
-                    model._advance(sample + late * period)
+                    model._advance(done + late * period)
                     raise BusTimeout(f"{what} not reached within {timeout} s")
                 if skip:
-                    model._advance(sample + skip * period)
+                    model._advance(done + skip * period)
             await self.wait(poll)
 
 
@@ -230,6 +231,8 @@ class LoggerModel:
         self.now = 0
         self._queue, self._seq = [], 0
         self._next_due = -1             # no event before this cycle (-1: look)
+        self._last_event = 0            # the last cycle an event was processed
+        self._sampled_at = 0            # the cycle the last register read sampled
         self._epoch = 0
         self._until = None
         self._power_off = False
@@ -277,12 +280,15 @@ class LoggerModel:
         t_queue = self._queue[0][0] if self._queue else _INF
         return t_fe, t_path, t_queue, self._wd_deadline
 
-    def _next_event_time(self):
-        """The first cycle after now at which a register may read differently."""
+    def _next_event_time(self, *, after):
+        """The first cycle after ``after`` (at most now) at which a register may read
+        differently."""
         t = min(self._heads())
+        if self._last_event > after:
+            t = min(t, self._last_event)
         # Changes that are comparisons with the time rather than events.
         for when in (self._sdram_ready_at, *self.storage.changes()):
-            if when > self.now:
+            if when > after:
                 t = min(t, when)
         if self._until is not None:
             t = min(t, self._until)
@@ -318,6 +324,7 @@ class LoggerModel:
                 break
             if t > self.now:
                 self.now = t
+            self._last_event = t
             if t_fe == t:
                 decision = fe[self._fe_pos]
                 self._fe_pos += 1
@@ -653,6 +660,7 @@ class LoggerModel:
         window, reg, read, _ = self._register(address)
         start = self.now
         self._advance(start + 1)            # the CSR strobe's edge
+        self._sampled_at = self.now
         fields = read() if read is not None else None
         self._advance(start + ACCESS_CYCLES)
         if fields is None:

@@ -599,18 +599,23 @@ def test_wait_event_skips_idle_polls_but_ends_as_polling_every_time_does(poll):
     assert fast[0][0] / CLK == pytest.approx(0.21, abs=2 * poll + 1e-6)
 
 
-@pytest.mark.parametrize("offset", range(ACCESS_CYCLES + 1))
-def test_wait_event_skips_to_the_very_poll_that_sees_the_change(offset):
-    # Polls one cycle apart (a period of ACCESS_CYCLES + 1): whichever cycle the change
-    # falls on, the skipping wait ends where polling every time ends.
+@pytest.mark.parametrize("offset", range(-1, ACCESS_CYCLES + 2))
+@pytest.mark.parametrize("poll", [1 / CLK, 1e-3])
+def test_wait_event_skips_to_the_very_poll_that_sees_the_change(offset, poll):
+    # The change falls `offset` cycles after the first poll's read starts (before, on and
+    # after the instant it samples), and later polls come a period of ACCESS_CYCLES + poll
+    # apart: whichever, the skipping wait ends where polling every time ends.
     def waits(fast):
         model = make_model(debounce_s=1e-4)
-        model.press_button(1e-4 + offset / CLK)
+        model.press_button(1e-4)
+        level = round(1e-4 * CLK) + 2 + round(1e-4 * CLK)     # the debounced level rises
         fw = Firmware(model)
         status = fw.reg("logger.status")
         wait_event = type(model.bus).wait_event if fast else RegisterBus.wait_event
+        model.call(model.bus.wait((level - offset) / CLK))
+        assert model.now == level - offset
         model.call(wait_event(model.bus, status.address, status.field("button").extract,
-                              timeout=1e-3, poll=1 / CLK))
+                              timeout=5e-3, poll=poll))
         return model.now
     assert waits(True) == waits(False)
 
