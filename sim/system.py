@@ -28,7 +28,7 @@ from .reference import Kind, reference_filter
 from .uart_line import encode
 
 
-__all__ = ["Burst", "SystemScenario", "SystemResult", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
+__all__ = ["Burst", "SystemScenario", "SystemResult", "flight_scenario", "FLIGHT_CHANNELS", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
 
 #: Bit times of one 8N1 character on the line: start, 8 data, stop.
 UART_FRAME_BITS = 10
@@ -242,6 +242,44 @@ class _Timeline:
         self._ends.append(start + duration)
         self._free[channel] = start + duration
         return start + duration
+
+
+#: A flight's channels at the instruments' own rates (DESIGN.md, Formats).
+FLIGHT_CHANNELS = (ChannelConfig(ChannelKind.PMAG, 115_200),
+                   ChannelConfig(ChannelKind.NMEA, 9_600),
+                   ChannelConfig(ChannelKind.CESIUM, 9_600))
+
+
+def flight_scenario(flight, *, clk_freq=50e6, lead_s=2.0, tail_s=1.0, mag_rate=20.0,
+                    cesium_rate=10.0, seed=0):
+    """A recording of a :class:`~maglog.sim.scenario.Flight`: its log lines (the
+    magnetometer's, the cesium's, GGA, ZDA and VTG once a second) sent on their channels at
+    the instruments' baud rates from ``lead_s`` on (the GPS lines of a second one after the
+    other), the button pressed ``lead_s / 2`` before the first line and ``tail_s / 2`` after
+    the last one ends, the run ending ``tail_s`` after it."""
+    log = flight.log(mag_rate=mag_rate, cesium_rate=cesium_rate, seed=seed)
+    kinds = {b"$PMAG1": 0, b"$ ": 2, b"$1": 2}
+    rate = {0: 1 / mag_rate, 2: 1 / cesium_rate}
+    counts = {0: 0, 1: 0, 2: 0}
+    line = _Timeline(FLIGHT_CHANNELS)
+    gps_second = None
+    end = 0.0
+    for frame in log.splitlines(keepends=True):
+        channel = next((k for prefix, k in kinds.items() if frame.startswith(prefix)), 1)
+        if channel == 1:
+            # A GGA opens each second's GPS lines (Flight.log writes GGA, ZDA, VTG).
+            if frame[3:6] == b"GGA" or gps_second is None:
+                gps_second = counts[1]
+                counts[1] += 1
+            start = lead_s + gps_second
+        else:
+            start = lead_s + counts[channel] * rate[channel]
+            counts[channel] += 1
+        end = max(end, line.add(channel, start, frame))
+    presses = [lead_s / 2, end + tail_s / 2]
+    return SystemScenario(channels=FLIGHT_CHANNELS, clk_freq=clk_freq, bursts=line.bursts,
+                          presses=presses, until=end + tail_s, hold=0.1, debounce_s=0.01,
+                          timestamp=flight.start)
 
 
 def short_scenario(seed=0):
