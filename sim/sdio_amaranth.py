@@ -2,10 +2,10 @@
 on an :class:`~maglog.hw.sdio.host.SdioHost`, and the SD card model on its pins."""
 
 from ..sw.bus import BlockPort, RegisterBus
-from .amaranth_tb import CLOCK_PERIOD, collect_payloads
+from .amaranth_tb import CLOCK_PERIOD, collect_payloads, run_simulation
 
 
-__all__ = ["CsrBus", "StreamBlockPort", "run_card"]
+__all__ = ["CsrBus", "StreamBlockPort", "run_card", "run_driver"]
 
 
 class CsrBus(RegisterBus):
@@ -122,3 +122,38 @@ async def run_card(ctx, pins, card):
         card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
         ctx.set(pins.cmd_i, card_cmd if card_cmd_oe else 1)
         ctx.set(pins.dat_i, (card_dat & card_dat_oe) | (0xF & ~card_dat_oe))
+
+
+def run_driver(firmware, card, *, sys_clock_hz, deadline=0.2, extra=(), name="sdio_host"):
+    """The firmware's SD driver on an :class:`~maglog.hw.sdio.host.SdioHost` with ``card``
+    on its pins, in the Amaranth simulator at ``sys_clock_hz`` (the driver is told the same
+    clock). ``await firmware(driver)`` is the firmware; ``extra`` are functions of the host
+    that return more background testbenches (probes). Returns a dict: ``value`` (what the
+    firmware returned) or ``error`` (the exception it raised), and ``driver``."""
+    from ..hw.sdio.host import SdioHost
+    from ..sw.regmap import RegisterMap
+    from ..sw.sdcard import SdCardDriver
+
+    host = SdioHost()
+    regs = RegisterMap(host.bus.memory_map)
+    period = 1 / sys_clock_hz
+    port = StreamBlockPort(host, clock_period=period)
+    outcome = {}
+
+    async def fw(ctx):
+        bus = CsrBus(ctx, host.bus, clock_period=period)
+        port.attach(ctx)
+        driver = SdCardDriver(bus, regs, port, sys_clock_hz=sys_clock_hz)
+        outcome["driver"] = driver
+        try:
+            outcome["value"] = await firmware(driver)
+        except Exception as error:          # reported to the caller, which decides
+            outcome["error"] = error
+
+    async def card_side(ctx):
+        await run_card(ctx, host.sd, card)
+
+    run_simulation(host, [fw], background=[card_side, port.source, port.sink,
+                                           *(make(host) for make in extra)],
+                   name=name, deadline=deadline, clock_period=period)
+    return outcome

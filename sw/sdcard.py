@@ -72,11 +72,17 @@ STATUS_ERRORS = (arch.CardStatus.OUT_OF_RANGE | arch.CardStatus.ADDRESS_ERROR
 
 @dataclass
 class CardInfo:
-    """What identification found out."""
+    """What identification found out.
+
+    ``high_capacity`` is the OCR's CCS bit: True for SDHC/SDXC (block addresses), False for
+    a standard-capacity card (SDSC, byte addresses; the driver converts). ``version`` is 2
+    when the card answered CMD8 (physical layer 2.00 or later), 1 for a Ver1.X card.
+    """
     ocr: int
     cid: int
     rca: int
     high_capacity: bool
+    version: int = 2
 
 
 class SdCardDriver:
@@ -98,6 +104,10 @@ class SdCardDriver:
         self.sd_clock_hz = None
         self.info = None
         self.retries = 0                    # how many retries were needed so far
+        #: Whether the card takes ACMD23 (the pre-erase count before a CMD25): None until a
+        #: multi-block write has tried it, False once the card refused it (it answered
+        #: nothing and flagged ILLEGAL_COMMAND); multi-block writes then go without it.
+        self.pre_erase_supported = None
 
     # -- host primitives --------------------------------------------------------------------
 
@@ -133,9 +143,9 @@ class SdCardDriver:
         """Send one command; returns the response bits (card status, OCR, CID ...).
 
         Retries a command without a data phase on a response CRC error (a data command is
-        not sent twice: the card may already wait for data); raises :class:`SdTimeout` when nothing answers,
-        :class:`SdCrcError` when every try had a CRC error, :class:`SdCardError` on a
-        malformed response or error bits in an R1."""
+        not sent twice: the card may already wait for data); raises :class:`SdTimeout` when
+        nothing answers, :class:`SdCrcError` when every try had a CRC error,
+        :class:`SdCardError` on a malformed response or error bits in an R1."""
         regs = self.regs
         tries = CMD_RETRIES if data == DataPhase.NONE else 1
         for attempt in range(tries):
@@ -193,8 +203,16 @@ class SdCardDriver:
     # -- identification ---------------------------------------------------------------------
 
     async def initialise(self):
-        """Power-up clocks, CMD0, CMD8, ACMD41 (HCS) until ready, CMD2, CMD3, CMD7, ACMD6,
-        then the 25 MHz clock. Returns :class:`CardInfo`."""
+        """Power-up clocks, CMD0, CMD8, ACMD41 until ready, CMD2, CMD3, CMD7, ACMD6, then the
+        25 MHz clock. Returns :class:`CardInfo`.
+
+        As PLSS §4.2.3.1 (Figure 4-2) has it: a card that answers CMD8 gets ACMD41 with HCS
+        (it may be SDHC/SDXC or SDSC, the OCR's CCS says which); a card that does not is a
+        Ver1.X card (or none) and gets ACMD41 with HCS = 0; no answer to that either means
+        no card. A standard-capacity card's block length is 512 bytes from power-up
+        (PLSS Table 4-22, CMD16), so no CMD16 is needed."""
+        self.info = None
+        self.pre_erase_supported = None
         await self.set_clock(arch.IDENT_CLOCK_HZ, run=True)
         await self.bus.wait(self._clocks_to_s(arch.INIT_CLOCKS + 2))
         await self.set_clock(arch.IDENT_CLOCK_HZ, run=False)
@@ -203,15 +221,22 @@ class SdCardDriver:
             echo = await self.command(arch.Command.SEND_IF_COND, arch.IF_COND_ARGUMENT,
                                       arch.Response.R7)
         except SdTimeout:
-            raise SdNoCard("no card answers CMD8 (a version 1 card or no card)") from None
-        if echo & arch.IF_COND_ECHO_MASK != arch.IF_COND_ARGUMENT:
-            raise SdCardError(f"CMD8 echo {echo & arch.IF_COND_ECHO_MASK:#05x} does not "
-                              f"match {arch.IF_COND_ARGUMENT:#05x}")
+            version = 1                     # a Ver1.X card, or no card at all
+        else:
+            version = 2
+            if echo & arch.IF_COND_ECHO_MASK != arch.IF_COND_ARGUMENT:
+                raise SdCardError(f"CMD8 echo {echo & arch.IF_COND_ECHO_MASK:#05x} does not "
+                                  f"match {arch.IF_COND_ARGUMENT:#05x}")
+        hcs = arch.ACMD41_HCS if version == 2 else 0
         start = self.bus.now()
         while True:
-            ocr = await self.app_command(arch.AppCommand.SD_SEND_OP_COND,
-                                         arch.ACMD41_HCS | arch.OCR_VOLTAGE_WINDOW,
-                                         arch.Response.R3)
+            try:
+                ocr = await self.app_command(arch.AppCommand.SD_SEND_OP_COND,
+                                             hcs | arch.OCR_VOLTAGE_WINDOW, arch.Response.R3)
+            except SdTimeout:
+                if version == 1:
+                    raise SdNoCard("no card answers CMD8 or ACMD41") from None
+                raise
             if ocr & arch.OCR_POWER_UP_DONE:
                 break
             if self.bus.now() - start > arch.ACMD41_LIMIT_S:
@@ -221,9 +246,7 @@ class SdCardDriver:
         cid = await self.command(arch.Command.ALL_SEND_CID, 0, arch.Response.R2)
         rca = (await self.command(arch.Command.SEND_RELATIVE_ADDR, 0, arch.Response.R6)) >> 16
         self.info = CardInfo(ocr=ocr, cid=cid, rca=rca,
-                             high_capacity=bool(ocr & arch.OCR_CCS))
-        if not self.info.high_capacity:
-            raise SdCardError("standard-capacity (byte-addressed) cards are not supported")
+                             high_capacity=bool(ocr & arch.OCR_CCS), version=version)
         await self.command(arch.Command.SELECT_CARD, rca << 16, arch.Response.R1B)
         await self.app_command(arch.AppCommand.SET_BUS_WIDTH, arch.BUS_WIDTH_4,
                                arch.Response.R1)
@@ -236,12 +259,17 @@ class SdCardDriver:
 
     # -- data -------------------------------------------------------------------------------
 
+    def _address(self, lba):
+        """The argument of a data command for block ``lba``: the block number on SDHC/SDXC,
+        its byte address on a standard-capacity card (PLSS Table 4-24, note 2)."""
+        return lba if self.info.high_capacity else lba * arch.BLOCK_BYTES
+
     async def read_block(self, lba):
         """The 512 bytes of block ``lba`` (retried on a CRC error)."""
         regs = self.regs
         for attempt in range(CMD_RETRIES):
-            await self.command(arch.Command.READ_SINGLE_BLOCK, lba, arch.Response.R1,
-                               data=DataPhase.READ)
+            await self.command(arch.Command.READ_SINGLE_BLOCK, self._address(lba),
+                               arch.Response.R1, data=DataPhase.READ)
             data = await self.port.receive(arch.BLOCK_BYTES)
             status = await self._wait_idle("dat_busy", self._clocks_to_s(
                 arch.READ_TIMEOUT_CLOCKS) * 2)
@@ -275,10 +303,11 @@ class SdCardDriver:
         """Write ``count`` blocks from block ``lba`` on, their bytes streamed to the host by
         ``source`` (``await source.arm(first, n)`` sets it up to send blocks first ..
         first+n-1 of the run; ``await source.cancel()`` drops what it has not sent). CMD24
-        for one block, else ACMD23 (pre-erase count) and CMD25 ended by CMD12. A block the
-        card rejects is sent again (after CMD12 and a status check), up to a limit; raises
-        :class:`SdWriteError` with the count of blocks that are safely written. Returns
-        ``count``."""
+        for one block, else ACMD23 (pre-erase count; skipped when ``pre_erase`` is false or
+        the card refused it before, see :attr:`pre_erase_supported`) and CMD25 ended by
+        CMD12. A block the card rejects is sent again (after CMD12 and a status check), up
+        to a limit; raises :class:`SdWriteError` with the count of blocks that are safely
+        written. Returns ``count``."""
         done = 0
         failures = 0
         while done < count:
@@ -318,17 +347,40 @@ class SdCardDriver:
                                 f"after a failed write")
             await self.bus.wait(RECOVER_POLL_S)
 
+    async def _pre_erase(self, count):
+        """ACMD23 before a CMD25 of ``count`` blocks, unless the card refused it before. A
+        card without ACMD23 takes it for CMD23, illegal to it as well: no response, and
+        ILLEGAL_COMMAND in the next status (PLSS §4.3.9.1, §4.10.1 condition B); CMD13 then
+        tells that apart from a command lost to a CRC error (COM_CRC_ERROR), which is
+        tried once more. ACMD23 only speeds writing up: without it the write is the same."""
+        if self.pre_erase_supported is False:
+            return
+        for attempt in range(2):
+            try:
+                await self.app_command(arch.AppCommand.SET_WR_BLK_ERASE_COUNT, count,
+                                       arch.Response.R1)
+            except SdTimeout:
+                status = arch.CardStatus(await self.card_status())
+                if arch.CardStatus.ILLEGAL_COMMAND in status:
+                    self.pre_erase_supported = False
+                    return
+                self.retries += 1
+                continue
+            self.pre_erase_supported = True
+            return
+        raise SdTimeout("ACMD23 got no response twice, and the card does not call it illegal")
+
     async def _write_run(self, lba, first, count, source, pre_erase):
         regs = self.regs
         multi = count > 1
         if multi and pre_erase:
-            await self.app_command(arch.AppCommand.SET_WR_BLK_ERASE_COUNT, count,
-                                   arch.Response.R1)
+            await self._pre_erase(count)
         await self.bus.write(regs["blocks"].address, count)
         await source.arm(first, count)
         index = arch.Command.WRITE_MULTIPLE_BLOCK if multi else arch.Command.WRITE_BLOCK
         try:
-            await self.command(index, lba, arch.Response.R1, data=DataPhase.WRITE)
+            await self.command(index, self._address(lba), arch.Response.R1,
+                               data=DataPhase.WRITE)
         except (SdCrcError, SdCardError) as error:
             # The data phase may have started or not; stop it cleanly and try again.
             await self._wait_dat(f"CMD{index}")

@@ -79,8 +79,17 @@ TOKEN_CRC_ERROR = 0b101
 TOKEN_WRITE_ERROR = 0b110
 #: The token starts 2 clocks after the block's end bit (N_CRC); give a card some slack.
 TOKEN_TIMEOUT_CLOCKS = 16
-#: Busy (DAT0 low) may begin up to 2 clocks after the token's end bit.
-BUSY_START_CLOCKS = 2
+#: Busy (DAT0 low) begins at once after the CRC status token's end bit, and after the end
+#: bit of an R1b response (PLSS §4.12 timing diagrams, block write and stop transmission:
+#: the busy's start bit follows the end bit with no gap). The host accepts it up to this
+#: many clocks late (it samples DAT0 at the rising edges 1 .. BUSY_START_CLOCKS + 1 after the
+#: end bit), and takes a card that shows no busy in that window as having finished. 8 is
+#: four times the spec's turnaround times (N_CRC = N_ST = N_WR = 2 clocks) and equal to the
+#: longest of its minimum gaps (N_RC = N_CC = 8): a card slower than that to pull DAT0 low
+#: is outside any timing the PLSS draws. It costs nothing when busy starts in time (the wait
+#: ends at the first low sample) and 9 clocks per block (<1 % of a block's 1,050) on a card
+#: that shows no busy at all.
+BUSY_START_CLOCKS = 8
 # Ref: PLSS §4.6.2 "Read, Write and Erase Timeout Conditions": SDHC write (busy) timeout
 #      250 ms, read access timeout 100 ms; in clocks at the 25 MHz default speed.
 DEFAULT_SPEED_HZ = 25_000_000
@@ -209,6 +218,10 @@ STATUS_CLEAR_ON_READ = (
 #: R6 carries status bits 23, 22, 19 and 12..0 in its low 16 bits (PLSS §4.9.5).
 R6_STATUS_HIGH_BITS = ((23, 15), (22, 14), (19, 13))
 R6_STATUS_LOW_MASK = 0x1FFF
+
+# Ref: PLSS §4.3.2 "2 GByte Card", §5.3.2 (CSD 1.0): a standard-capacity (SDSC, CCS = 0)
+#      card holds at most 2 GB and takes byte addresses; SDHC/SDXC (CCS = 1) block addresses.
+SDSC_MAX_BLOCKS = (2 << 30) // BLOCK_BYTES
 
 # Ref: PLSS §5.1 "OCR register" and §4.7.4 (ACMD41 argument).
 OCR_POWER_UP_DONE = 1 << 31      # 0 while the card is busy initialising

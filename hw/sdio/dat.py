@@ -24,15 +24,16 @@ class WriteStatus(data.Struct):
 
 
 class _WState(enum.Enum, shape=4):
-    IDLE     = 0
-    PREAMBLE = 1
-    START    = 2
-    DATA     = 3
-    CRC      = 4
-    END      = 5
-    RELEASE  = 6
-    TOKEN    = 7
-    BUSY     = 8
+    IDLE       = 0    # waits for `start`
+    PREAMBLE   = 1    # N_WR clocks of ones before the start bit
+    START      = 2    # the start bit on every line
+    DATA       = 3    # 1024 nibbles, high nibble first
+    CRC        = 4    # each line's CRC16
+    END        = 5    # the end bit
+    RELEASE    = 6    # lines released after the end bit was sampled
+    TOKEN      = 7    # waits for the CRC status token on DAT0 and reads it
+    BUSY_START = 9    # waits for busy (DAT0 low) to begin, BUSY_START_CLOCKS at most
+    BUSY       = 8    # waits for the end of busy (DAT0 high), up to the busy timeout
 
 
 class DatWriter(wiring.Component):
@@ -41,7 +42,9 @@ class DatWriter(wiring.Component):
     Per block, on the SD clock's falling edges: N_WR clocks of ones, the start bit (0 on all
     lines), 1024 nibbles high nibble first, 16 CRC bits per line, the end bit; the lines are
     then released and, on rising edges, the CRC status token is awaited on DAT0 (start 0,
-    three status bits, end 1) and then the end of busy (DAT0 high again). The next block
+    three status bits, end 1) and then the busy: its start (DAT0 low) within
+    ``arch.BUSY_START_CLOCKS`` clocks of the token's end bit, then its end (DAT0 high
+    again); a card that shows no busy in that window has finished. The next block
     follows without CPU help. A rejected block, a missing token or a busy timeout stops the
     run and is reported; ``accepted`` counts the blocks the card took.
 
@@ -100,7 +103,8 @@ class DatWriter(wiring.Component):
         m.d.comb += wanted.eq(
             state.as_value().matches(_WState.PREAMBLE, _WState.START, _WState.DATA) |
             ((left > 1) & state.as_value().matches(_WState.CRC, _WState.END, _WState.RELEASE,
-                                                   _WState.TOKEN, _WState.BUSY)))
+                                                   _WState.TOKEN, _WState.BUSY_START,
+                                                   _WState.BUSY)))
         m.d.comb += [
             self.busy.eq(state != _WState.IDLE),
             self.i.ready.eq(~loaded & wanted),
@@ -200,21 +204,35 @@ class DatWriter(wiring.Component):
                         with m.Elif(token != arch.TOKEN_ACCEPTED):
                             finish(write_error=1)
                         with m.Else():
-                            m.d.sync += [waited.eq(0), count.eq(0), state.eq(_WState.BUSY)]
+                            m.d.sync += [waited.eq(0), count.eq(0),
+                                         state.eq(_WState.BUSY_START)]
 
-            with m.Case(_WState.BUSY):
-                # Waits for the card to release DAT0 (programming done), with a timeout.
+            def block_done():
+                m.d.sync += [self.accepted.eq(self.accepted + 1), left.eq(left - 1),
+                             count.eq(0)]
+                with m.If(left == 1):
+                    finish()
+                with m.Else():
+                    m.d.sync += state.eq(_WState.PREAMBLE)
+
+            with m.Case(_WState.BUSY_START):
+                # Waits for the card to pull DAT0 low (busy): at the rising edges 1 to
+                # BUSY_START_CLOCKS + 1 after the token's end bit. DAT0 high at all of them:
+                # the card shows no busy, the block is programmed.
                 with m.If(self.rise):
                     m.d.sync += waited.eq(waited + 1)
-                    with m.If(waited < arch.BUSY_START_CLOCKS):
-                        pass            # busy may start a clock or two after the token
-                    with m.Elif(self.dat_i[0] == 1):
-                        m.d.sync += [self.accepted.eq(self.accepted + 1), left.eq(left - 1),
-                                     count.eq(0)]
-                        with m.If(left == 1):
-                            finish()
-                        with m.Else():
-                            m.d.sync += state.eq(_WState.PREAMBLE)
+                    with m.If(self.dat_i[0] == 0):
+                        m.d.sync += state.eq(_WState.BUSY)
+                    with m.Elif(waited >= arch.BUSY_START_CLOCKS):
+                        block_done()
+
+            with m.Case(_WState.BUSY):
+                # Waits for the card to release DAT0 (programming done), with a timeout
+                # counted from the token's end bit.
+                with m.If(self.rise):
+                    m.d.sync += waited.eq(waited + 1)
+                    with m.If(self.dat_i[0] == 1):
+                        block_done()
                     with m.Elif(waited >= self.busy_timeout):
                         finish(busy_timeout=1)
 

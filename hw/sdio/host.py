@@ -46,9 +46,9 @@ class DataPhase(enum.Enum, shape=2):
 
 
 class _Busy(enum.Enum, shape=2):
-    IDLE = 0
-    SKIP = 1
-    WAIT = 2
+    IDLE  = 0    # no R1b busy wait under way
+    START = 1    # waits for busy (DAT0 low) to begin, BUSY_START_CLOCKS at most
+    WAIT  = 2    # waits for the end of busy (DAT0 high), up to the busy timeout
 
 
 class SdioHost(wiring.Component):
@@ -209,17 +209,23 @@ class SdioHost(wiring.Component):
                 with m.If(phase == DataPhase.WRITE):
                     m.d.comb += writer.start.eq(1)
                 with m.Elif(r1b):
-                    m.d.sync += [busy_state.eq(_Busy.SKIP), busy_waited.eq(0),
+                    m.d.sync += [busy_state.eq(_Busy.START), busy_waited.eq(0),
                                  busy_timeout.eq(0)]
 
-        # R1b: wait for DAT0 to return high (after a clock or two for busy to begin).
+        # R1b: busy begins within BUSY_START_CLOCKS clocks of the response's end bit (or not
+        # at all: the card has nothing to do), then lasts until DAT0 is high again.
         with m.Switch(busy_state):
-            with m.Case(_Busy.SKIP, _Busy.WAIT):
+            with m.Case(_Busy.START):
                 with m.If(clock.rise):
                     m.d.sync += busy_waited.eq(busy_waited + 1)
-                    with m.If(busy_waited < arch.BUSY_START_CLOCKS):
-                        pass
-                    with m.Elif(self.sd.dat_i[0] == 1):
+                    with m.If(self.sd.dat_i[0] == 0):
+                        m.d.sync += busy_state.eq(_Busy.WAIT)
+                    with m.Elif(busy_waited >= arch.BUSY_START_CLOCKS):
+                        m.d.sync += busy_state.eq(_Busy.IDLE)
+            with m.Case(_Busy.WAIT):
+                with m.If(clock.rise):
+                    m.d.sync += busy_waited.eq(busy_waited + 1)
+                    with m.If(self.sd.dat_i[0] == 1):
                         m.d.sync += busy_state.eq(_Busy.IDLE)
                     with m.Elif(busy_waited >= self._busy_timeout.f.clocks.data):
                         m.d.sync += [busy_state.eq(_Busy.IDLE), busy_timeout.eq(1)]

@@ -1,4 +1,5 @@
-"""A protocol-checking SD card (SD mode, SDHC, 1- or 4-bit bus), bit by bit, in plain Python.
+"""A protocol-checking SD card (SD mode, SDHC or SDSC, 1- or 4-bit bus), bit by bit, in plain
+Python.
 
 :class:`SdCard` is written from the SD Physical Layer Simplified Specification (PLSS, see
 :mod:`maglog.hw.arch.sd`), independently of the gateware: it shares nothing with hw/ but the
@@ -24,6 +25,17 @@ What the card does (PLSS chapter 4):
   the card is busy for a seeded number of calls, then ready with CCS = 1), CMD2 (R2 CID),
   CMD3 (R6, new RCA); CMD2 and ACMD41 answer N_ID = 5 clocks after the command, every other
   response N_CR (configurable, 2..64) clocks after.
+* Standard capacity (``high_capacity=False``, at most 2 GB): CCS = 0 in the OCR, HCS
+  ignored, a version 1.0 CSD, and byte addresses (PLSS §4.3.14 note 2, Table 4-24): the
+  argument of CMD17/18/24/25 is a byte address, a multiple of the block length (512 by
+  default, PLSS Table 4-22 CMD16) or ADDRESS_ERROR (no transfer, PLSS §4.3.3). With
+  ``version=1`` the card is a Ver1.X card: CMD8 is an illegal command to it (no response,
+  ILLEGAL_COMMAND next), and the host must send ACMD41 with HCS = 0 (PLSS §4.2.3.1).
+* ``acmd23=False``: a card that does not implement ACMD23 (SET_WR_BLK_ERASE_COUNT). PLSS
+  §4.3.9.1: an ACMD the card does not define is taken as the standard command of that
+  index; CMD23 (SET_BLOCK_COUNT) is optional and this card has none, so the command is
+  illegal: no response, and ILLEGAL_COMMAND in the next response (§4.10.1, condition B).
+  Commands a card of this configuration lacks are logged, not reported as host errors.
 * Transfer: CMD7 (select R1b / deselect), CMD9/CMD10 (R2 CSD/CID), CMD13 (R1), CMD16, CMD17
   and CMD18 (reads), CMD24 and CMD25 (writes, ended by CMD12), CMD12 (R1b), CMD15, ACMD6
   (bus width), ACMD13 (SD status), ACMD22 (well-written blocks), ACMD23 (pre-erase count),
@@ -32,7 +44,8 @@ What the card does (PLSS chapter 4):
   lines, DAT3 carrying the nibble's MSB; or 4096 bits MSB first on DAT0), one CRC16 per line,
   end bit 1. Written blocks are answered N_CRC = 2 clocks after their end bit by the CRC
   status token on DAT0 (0, ``010`` accepted / ``101`` CRC error / ``110`` write error, 1), then
-  the card holds DAT0 low while it programs (a seeded number of clocks in ``busy_clocks``),
+  the card holds DAT0 low while it programs (a seeded number of clocks in ``busy_clocks``;
+  with ``busy_start_delay`` it first leaves DAT0 released for that many clocks),
   stores the block, drives DAT0 high for one clock and releases it. CMD12 ends a CMD25:
   a block being received is discarded, one being programmed is finished, and the R1b's busy
   starts right after its end bit. A deselected card (dis) programs without driving DAT0.
@@ -177,6 +190,12 @@ class _Illegal(Exception):
     """The command is illegal in the card's state: no response, ILLEGAL_COMMAND next."""
 
 
+class _Unsupported(_Illegal):
+    """Illegal because this card's configuration lacks the command (a Ver1.X card's CMD8,
+    ACMD23 on a card without it): no response and ILLEGAL_COMMAND, as for any illegal
+    command, but no host error is recorded — a host may probe for it."""
+
+
 class _NotAddressed(Exception):
     """The command carries another card's RCA: this card ignores it."""
 
@@ -189,7 +208,7 @@ class _Reply:
 
 
 class SdCard:
-    """An SDHC card on an SD-mode bus; see the module documentation for its behaviour.
+    """An SDHC or SDSC card on an SD-mode bus; see the module documentation.
 
     Parameters
     ----------
@@ -213,11 +232,25 @@ class SdCard:
         default the data starts 2 clocks after the response's end bit.
     acmd41_busy : (int, int)
         Inclusive range of the number of ACMD41 calls answered busy before the card is ready.
+    high_capacity : bool
+        True: SDHC (block addresses, CSD 2.0). False: SDSC, at most 2 GB (byte addresses,
+        CSD 1.0); its capacity is the largest the CSD 1.0 fields express up to
+        ``capacity_blocks``, and :attr:`capacity_blocks` says what it is.
+    version : int
+        2: the card answers CMD8 (physical layer 2.00 or later). 1: a Ver1.X card (SDSC
+        only), to which CMD8 is an illegal command.
+    acmd23 : bool
+        False: ACMD23 is an illegal command to this card (see the module documentation).
+    busy_start_delay : int
+        Clocks the card leaves DAT0 released after a CRC status token's end bit (and after
+        the end bit of CMD12's R1b) before it holds DAT0 low for busy; 0 = at once, as the
+        PLSS timing diagrams draw it.
     """
 
     def __init__(self, image: CardImage, *, seed=0, capacity_blocks=None, busy_clocks=(8, 64),
                  faults: Faults | None = None, rca=None, n_cr=arch.N_CR_MIN, n_ac=None,
-                 acmd41_busy=(1, 4)):
+                 acmd41_busy=(1, 4), high_capacity=True, version=2, acmd23=True,
+                 busy_start_delay=0):
         if not isinstance(image, CardImage):
             raise TypeError(f"Image must be a CardImage, not {image!r}")
         if capacity_blocks is None:
@@ -235,12 +268,30 @@ class SdCard:
         self._acmd41_range = _check_range("ACMD41 busy calls", acmd41_busy, 0, None)
         if rca is not None and (not isinstance(rca, int) or not 1 <= rca <= _RCA_MASK):
             raise ValueError(f"RCA must be an integer in 1..0xFFFF or None, not {rca!r}")
+        if version not in (1, 2):
+            raise ValueError(f"Version must be 1 (Ver1.X, no CMD8) or 2, not {version!r}")
+        if version == 1 and high_capacity:
+            raise ValueError("A version 1 card is standard capacity: give high_capacity=False")
+        if not high_capacity and capacity_blocks > arch.SDSC_MAX_BLOCKS:
+            raise ValueError(f"A standard-capacity card holds at most 2 GB "
+                             f"({arch.SDSC_MAX_BLOCKS} blocks), not {capacity_blocks!r} blocks")
+        if (not isinstance(busy_start_delay, int) or isinstance(busy_start_delay, bool)
+                or busy_start_delay < 0):
+            raise ValueError(f"Busy start delay must be a non-negative number of clocks, not "
+                             f"{busy_start_delay!r}")
         if faults is None:
             faults = Faults()
         if not isinstance(faults, Faults):
             raise TypeError(f"Faults must be a Faults instance or None, not {faults!r}")
 
         self.image = image
+        self.high_capacity = bool(high_capacity)
+        self.version = version
+        self.acmd23 = bool(acmd23)
+        self.busy_start_delay = busy_start_delay
+        if not self.high_capacity:
+            self._csd_v1 = _csd_v1_fields(capacity_blocks)
+            capacity_blocks = self._csd_v1["blocks"]
         self.capacity_blocks = capacity_blocks
         self.faults = faults
         self._fixed_rca = rca
@@ -292,6 +343,9 @@ class SdCard:
         self.ocr_ready = False
         #: Pre-erase count set by ACMD23 for the next CMD25 (None: not set).
         self.pre_erase_count: int | None = None
+        #: SDSC: block length of reads and writes, 512 after power-up and CMD0 (PLSS Table
+        #: 4-22, CMD16: "Default block length is fixed to 512 Bytes").
+        self.block_length = arch.BLOCK_BYTES
         self._if_cond = False
         self._acmd41_left: int | None = None
         self._hcs_reported = False
@@ -432,6 +486,9 @@ class SdCard:
                 reply = self._app_command(now, index, argument)
             else:
                 reply = self._basic_command(now, index, argument, app)
+        except _Unsupported as lacking:
+            self._pending |= CardStatus.ILLEGAL_COMMAND
+            return ignore(f"illegal: {lacking}")
         except _Illegal as illegal:
             self._pending |= CardStatus.ILLEGAL_COMMAND
             busy = " while the card is busy" if self._busy else ""
@@ -520,6 +577,8 @@ class SdCard:
             return _Reply(Response.NONE, note="reset")
 
         if index == Command.SEND_IF_COND:
+            if self.version == 1:
+                raise _Unsupported("a Ver1.X card has no CMD8")
             self._require(CardState.IDLE)
             vhs = (argument & arch.IF_COND_VHS_MASK) >> arch.IF_COND_VHS_SHIFT
             if vhs != arch.IF_COND_VHS_2V7_3V6:
@@ -572,26 +631,30 @@ class SdCard:
         if index == Command.SET_BLOCKLEN:
             self._require(CardState.TRAN)
             # SDHC: reads and writes always use 512-byte blocks; CMD16 only sets the length
-            # of CMD42's block, which may not exceed 512 (PLSS §4.3.14, §4.10.1).
-            error = CardStatus(0) if 1 <= argument <= arch.BLOCK_BYTES \
-                else CardStatus.BLOCK_LEN_ERROR
-            return _Reply(Response.R1, error)
+            # of CMD42's block. SDSC: it sets the length of reads and writes. Either way it
+            # may not exceed 512 (PLSS Table 4-22, §4.3.2, §4.10.1).
+            if not 1 <= argument <= arch.BLOCK_BYTES:
+                return _Reply(Response.R1, CardStatus.BLOCK_LEN_ERROR)
+            if not self.high_capacity:
+                self.block_length = argument
+            return _Reply(Response.R1, note=f"block length {argument}")
 
         if index in (Command.READ_SINGLE_BLOCK, Command.READ_MULTIPLE_BLOCK):
             self._require(CardState.TRAN)
-            if argument >= self.capacity_blocks:
-                return _Reply(Response.R1, CardStatus.OUT_OF_RANGE,
-                              f"LBA {argument} beyond {self.capacity_blocks} blocks")
+            lba, error = self._address(now, argument)
+            if error is not None:
+                return error
             multi = index == Command.READ_MULTIPLE_BLOCK
-            self._start_op(self._op_send(now, self._read_blocks(argument, multi), lba=argument),
+            self._start_op(self._op_send(now, self._read_blocks(lba, multi), lba=lba),
                            CardState.DATA)
-            return _Reply(Response.R1, note=f"LBA {argument}")
+            return _Reply(Response.R1, note=f"LBA {lba}")
 
         if index in (Command.WRITE_BLOCK, Command.WRITE_MULTIPLE_BLOCK):
             self._require(CardState.TRAN)
-            if argument >= self.capacity_blocks:
-                return _Reply(Response.R1, CardStatus.OUT_OF_RANGE,
-                              f"LBA {argument} beyond {self.capacity_blocks} blocks")
+            lba, error = self._address(now, argument)
+            if error is not None:
+                return error
+            argument = lba
             multi = index == Command.WRITE_MULTIPLE_BLOCK
             note = f"LBA {argument}"
             if multi and self.pre_erase_count is not None:
@@ -610,6 +673,28 @@ class SdCard:
 
         known = index in _COMMAND_INDICES
         raise _Illegal("not implemented by the card model" if known else "unknown command")
+
+    def _address(self, now: int, argument: int) -> tuple[int, _Reply | None]:
+        """The block a data command's argument names, or the R1 that rejects it (no data
+        transfer follows, PLSS §4.3.3): block addresses on SDHC, byte addresses on SDSC."""
+        if self.high_capacity:
+            lba, where = argument, f"LBA {argument}"
+        else:
+            lba, where = argument // arch.BLOCK_BYTES, f"byte address 0x{argument:08X}"
+            if self.block_length != arch.BLOCK_BYTES:
+                self._error(now, f"block length {self.block_length}: the card model transfers "
+                                 f"only {arch.BLOCK_BYTES}-byte blocks")
+                return lba, _Reply(Response.R1, CardStatus.BLOCK_LEN_ERROR,
+                                   f"block length {self.block_length}")
+        if lba >= self.capacity_blocks:
+            return lba, _Reply(Response.R1, CardStatus.OUT_OF_RANGE,
+                               f"{where} beyond {self.capacity_blocks} blocks")
+        if argument % arch.BLOCK_BYTES and not self.high_capacity:
+            # READ_BL_MISALIGN = WRITE_BLK_MISALIGN = 0: a 512-byte block must not cross a
+            # physical block boundary (PLSS Tables 4-23, 4-24, note 1).
+            return lba, _Reply(Response.R1, CardStatus.ADDRESS_ERROR,
+                               f"{where} not a multiple of {arch.BLOCK_BYTES}")
+        return lba, None
 
     def _select(self, now: int, argument: int) -> _Reply:
         """CMD7 (PLSS §4.8): its own RCA selects, any other RCA deselects; only the selected
@@ -651,6 +736,9 @@ class SdCard:
                 return _Reply(Response.R1, CardStatus.ERROR, "reserved width")
             return _Reply(Response.R1, note=f"{self.bus_width}-bit bus")
         if index == AppCommand.SET_WR_BLK_ERASE_COUNT:
+            if not self.acmd23:
+                # Taken as CMD23 (PLSS §4.3.9.1), which this card does not have either.
+                raise _Unsupported("this card has neither ACMD23 nor CMD23")
             self.pre_erase_count = argument & arch.PRE_ERASE_COUNT_MASK
             return _Reply(Response.R1, note=f"pre-erase count {self.pre_erase_count}")
         if index == AppCommand.SET_CLR_CARD_DETECT:
@@ -678,7 +766,12 @@ class SdCard:
             return _Reply(Response.NONE, note="voltage mismatch: inactive")
         note = "inquiry"
         if window:
-            if not (self._if_cond and argument & arch.ACMD41_HCS):
+            if (argument & arch.ACMD41_HCS and not self._if_cond and not self._hcs_reported
+                    and not self.high_capacity):
+                # PLSS §4.2.3.1 / Figure 4-2: after no answer to CMD8 the host sends HCS = 0.
+                self._hcs_reported = True
+                self._error(now, "ACMD41 with HCS after CMD8 went unanswered (HCS must be 0)")
+            if self.high_capacity and not (self._if_cond and argument & arch.ACMD41_HCS):
                 if not self._hcs_reported:
                     self._hcs_reported = True
                     self._error(now, "ACMD41 without HCS or without a CMD8 first: an SDHC "
@@ -696,7 +789,7 @@ class SdCard:
                     note = "ready"
         ocr = arch.OCR_VOLTAGE_WINDOW
         if self.ocr_ready:
-            ocr |= arch.OCR_POWER_UP_DONE | arch.OCR_CCS
+            ocr |= arch.OCR_POWER_UP_DONE | (arch.OCR_CCS if self.high_capacity else 0)
         return _Reply(Response.R3, ocr, note)
 
     # -- registers -----------------------------------------------------------------------------
@@ -715,7 +808,10 @@ class SdCard:
         return _register_with_crc(fields)
 
     def _make_csd(self) -> int:
-        """CSD version 2.0 (PLSS §5.3.3): capacity = (C_SIZE + 1) × 512 KiB."""
+        """CSD version 2.0 (PLSS §5.3.3): capacity = (C_SIZE + 1) × 512 KiB; for SDSC,
+        version 1.0 (PLSS §5.3.2)."""
+        if not self.high_capacity:
+            return self._make_csd_v1()
         c_size = max(self.capacity_blocks // 1024, 1) - 1
         fields = [
             (2, 0b01), (6, 0),                          # CSD_STRUCTURE 2.0
@@ -730,10 +826,33 @@ class SdCard:
         ]
         return _register_with_crc(fields)
 
+    def _make_csd_v1(self) -> int:
+        """CSD version 1.0 (PLSS §5.3.2): capacity = (C_SIZE + 1) × 2^(C_SIZE_MULT + 2) ×
+        2^READ_BL_LEN bytes; READ_BL_LEN = WRITE_BL_LEN (1024 bytes only for a card above
+        1 GB, §4.3.2), partial reads allowed (always, in SD), no misaligned blocks."""
+        v1 = self._csd_v1
+        fields = [
+            (2, 0b00), (6, 0),                          # CSD_STRUCTURE 1.0
+            (8, 0x26), (8, 0x00),                       # TAAC 1.5 ms, NSAC
+            (8, 0x32),                                  # TRAN_SPEED 25 MHz
+            (12, 0x5B5), (4, v1["read_bl_len"]),        # CCC, READ_BL_LEN
+            (1, 1), (1, 0), (1, 0), (1, 0),             # READ_BL_PARTIAL, misalign, DSR_IMP
+            (2, 0), (12, v1["c_size"]),                 # C_SIZE
+            (3, 0b111), (3, 0b110), (3, 0b111), (3, 0b110),         # VDD currents
+            (3, v1["c_size_mult"]),                     # C_SIZE_MULT
+            (1, 1), (7, 0x7F), (7, 0),                  # ERASE_BLK_EN, SECTOR_SIZE, WP_GRP
+            (1, 0), (2, 0), (3, 0b010), (4, v1["read_bl_len"]), (1, 0), (5, 0),
+            (1, 0), (1, 0), (1, 0), (1, 0), (2, 0), (2, 0),         # file format, protection
+        ]
+        return _register_with_crc(fields)
+
     def _make_scr(self) -> bytes:
-        """SCR (PLSS §5.6): spec 3.0x, SDHC security, 1- and 4-bit bus."""
-        value = ((0 << 60) | (2 << 56) | (0 << 55) | (3 << 52) | (0b0101 << 48)
-                 | (1 << 47))
+        """SCR (PLSS §5.6): spec 3.0x (1.0 for a Ver1.X card), SDHC or SDSC security, 1- and
+        4-bit bus."""
+        spec, spec3 = (2, 1) if self.version == 2 else (0, 0)
+        security = 3 if self.high_capacity else 2
+        value = ((0 << 60) | (spec << 56) | (0 << 55) | (security << 52) | (0b0101 << 48)
+                 | (spec3 << 47))
         return value.to_bytes(8, "big")
 
     def _make_sd_status(self) -> bytes:
@@ -906,6 +1025,9 @@ class SdCard:
                 continue
             if self.state is CardState.RCV and not multi:
                 self.state = CardState.PRG
+            for _ in range(self.busy_start_delay):
+                now, dat = yield 0, _ALL_LINES
+                self._check_dat_while_busy(now, dat)
             if self.faults.busy_past_timeout == block:
                 clocks = self.faults.busy_past_timeout_clocks
             else:
@@ -976,7 +1098,7 @@ class SdCard:
     def _final_busy(self, now: int, dat: int):
         """After CMD12 in a write: busy from the end of the R1b until programming is done."""
         self._busy = True
-        while now < self._stop_busy_from:
+        while now < self._stop_busy_from + self.busy_start_delay:
             now, dat = yield 0, _ALL_LINES
         for _ in range(self._busy_rng.randint(*self._busy_range)):
             now, dat = yield _DAT0, _DAT0_LOW
@@ -1003,6 +1125,25 @@ def _check_range(what: str, value, low: int, high: int | None) -> tuple[int, int
         raise ValueError(f"{what} must be an integer or an inclusive (low, high) range, "
                          f"{bound}, not {value!r}")
     return value
+
+
+def _csd_v1_fields(capacity_blocks: int) -> dict:
+    """C_SIZE, C_SIZE_MULT and READ_BL_LEN of the largest CSD 1.0 capacity up to
+    ``capacity_blocks`` 512-byte blocks, and that capacity in blocks ("blocks")."""
+    best = None
+    for read_bl_len in (9, 10):                 # 512 bytes; 1024 only for 2 GB (§4.3.2)
+        for c_size_mult in range(7, -1, -1):
+            unit = (1 << (c_size_mult + 2)) << (read_bl_len - 9)    # 512-byte blocks
+            c_size = min(capacity_blocks // unit, 1 << 12) - 1
+            if c_size < 0:
+                continue
+            blocks = (c_size + 1) * unit
+            if best is None or blocks > best["blocks"]:
+                best = dict(read_bl_len=read_bl_len, c_size_mult=c_size_mult, c_size=c_size,
+                            blocks=blocks)
+    if best is None:
+        raise ValueError(f"A CSD 1.0 card holds at least 4 blocks, not {capacity_blocks!r}")
+    return best
 
 
 def _register_with_crc(fields: list[tuple[int, int]]) -> int:

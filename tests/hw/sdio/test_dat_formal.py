@@ -432,7 +432,8 @@ class DatWriterSpec(Elaboratable):
         m.d.sync += [ref[lane].eq(next_ref[lane]) for lane in range(LANES)]
 
         # --- Released lines, busy and done -----------------------------------------------
-        check("released", ~((w.state == state.TOKEN) | (w.state == state.BUSY)) | ~dut.dat_oe,
+        check("released",
+              ~w.state.matches(state.TOKEN, state.BUSY_START, state.BUSY) | ~dut.dat_oe,
               "released_for_card")
         busy_before = Signal()
         start_before = Signal()
@@ -449,7 +450,7 @@ class DatWriterSpec(Elaboratable):
         crc_matches = Cat(w.crc[lane] == next_ref[lane] for lane in range(LANES)).all()
         released = ~w.dat_oe & (w.dat_o == ALL_LINES)
         with m.Switch(w.state):
-            with m.Case(state.IDLE, state.TOKEN, state.BUSY):
+            with m.Case(state.IDLE, state.TOKEN, state.BUSY_START, state.BUSY):
                 invariant(released & at(_Phase.OFF) & ~w.low)
             with m.Case(state.PREAMBLE):
                 invariant((w.count < arch.N_WR) & (w.dat_o == ALL_LINES) & ~w.low &
@@ -487,7 +488,7 @@ class DatWriterSpec(Elaboratable):
         busy_seen = Signal()
         with m.If(dut.start & ~dut.busy):
             m.d.sync += busy_seen.eq(0)
-        with m.Elif(dut.rise & (w.state == state.BUSY) & ~dut.dat_i[0]):
+        with m.Elif(dut.rise & w.state.matches(state.BUSY_START, state.BUSY) & ~dut.dat_i[0]):
             m.d.sync += busy_seen.eq(1)
         cover("block_start", fell & (phase == _Phase.DATA) & (count == 1))
         if "block_end" in self.covers:

@@ -16,12 +16,11 @@ from maglog.hw.arch import sd as arch
 from maglog.hw.arch.sd import CardState
 from maglog.hw.sdio.cmd import ResponseKind
 from maglog.hw.sdio.host import DataPhase, SdioHost
-from maglog.sim.amaranth_tb import run_simulation
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.sdcard import Faults, SdCard
-from maglog.sim.sdio_amaranth import CsrBus, StreamBlockPort, run_card
+from maglog.sim.sdio_amaranth import run_driver
 from maglog.sw.regmap import RegisterMap
-from maglog.sw.sdcard import SdCardDriver, SdNoCard, SdTimeout, SdWriteError
+from maglog.sw.sdcard import SdNoCard, SdTimeout, SdWriteError
 
 #: The system clock: the simulation runs at it and the driver is told it.
 SYS_CLOCK_HZ = 4e6
@@ -31,28 +30,8 @@ CAPACITY = 1 << 16      # blocks (32 MiB), sparse
 
 
 def run(firmware, card, *, deadline=0.2, extra=()):
-    host = SdioHost()
-    regs = RegisterMap(host.bus.memory_map)
-    port = StreamBlockPort(host, clock_period=1 / SYS_CLOCK_HZ)
-    outcome = {}
-
-    async def fw(ctx):
-        bus = CsrBus(ctx, host.bus, clock_period=1 / SYS_CLOCK_HZ)
-        port.attach(ctx)
-        driver = SdCardDriver(bus, regs, port, sys_clock_hz=SYS_CLOCK_HZ)
-        try:
-            outcome["value"] = await firmware(driver)
-        except Exception as error:          # reported to the test, which decides
-            outcome["error"] = error
-        outcome["driver"] = driver
-
-    async def card_side(ctx):
-        await run_card(ctx, host.sd, card)
-
-    run_simulation(host, [fw], background=[card_side, port.source, port.sink,
-                                           *(make(host) for make in extra)],
-                   name="sdio_host", deadline=deadline, clock_period=1 / SYS_CLOCK_HZ)
-    return outcome
+    return run_driver(firmware, card, sys_clock_hz=SYS_CLOCK_HZ, deadline=deadline,
+                      extra=extra)
 
 
 def new_card(**kwargs):

@@ -13,7 +13,7 @@ import crc
 import pytest
 
 from maglog.hw.arch import sd as arch
-from maglog.hw.arch.sd import CardState, CardStatus
+from maglog.hw.arch.sd import CardState, CardStatus, Response
 from maglog.sim.models import BlockEvent, CardImage, Faults, SdCard, Transaction
 from maglog.sim.models.sdcard import crc7, crc16
 
@@ -149,7 +149,7 @@ class Host:
     # -- data ----------------------------------------------------------------------------------
 
     def write_block(self, data, *, n_wr=arch.N_WR, token_timeout=arch.TOKEN_TIMEOUT_CLOCKS,
-                    busy_timeout=100_000, corrupt_crc=False):
+                    busy_timeout=100_000, corrupt_crc=False, grace=2):
         """Send one 4-bit block ``n_wr`` clocks after now; return (token, busy clocks), token
         None when none came, busy None past the timeout."""
         nibbles = [n for byte in data for n in (byte >> 4, byte & 0xF)]
@@ -162,9 +162,9 @@ class Host:
             self.clock(dat=0xF)
         for value in [0] + nibbles + crc_nibbles + [0xF]:
             self.clock(dat=value)
-        return self.token_and_busy(token_timeout, busy_timeout)
+        return self.token_and_busy(token_timeout, busy_timeout, grace)
 
-    def token_and_busy(self, token_timeout, busy_timeout):
+    def token_and_busy(self, token_timeout, busy_timeout, grace=2):
         waited = 0
         while self.clock()[1] & 1:
             waited += 1
@@ -174,11 +174,12 @@ class Host:
         bits = [self.clock()[1] & 1 for _ in range(4)]
         assert bits[3] == 1, "token end bit"
         token = bits[0] << 2 | bits[1] << 1 | bits[2]
-        return token, self.wait_busy(busy_timeout, grace=2)
+        return token, self.wait_busy(busy_timeout, grace=grace)
 
     def wait_busy(self, timeout=100_000, grace=2):
-        """Clocks of DAT0 low (busy), which must start within ``grace`` clocks."""
-        for _ in range(grace):
+        """Clocks of DAT0 low (busy), which must start within ``grace`` clocks (0: it did
+        not); ``busy_start`` is then the number of clocks DAT0 stayed high before it."""
+        for self.busy_start in range(grace):
             if not self.clock()[1] & 1:
                 break
         else:
@@ -215,15 +216,17 @@ class Host:
 
 
 def initialise(host: Host, *, four_bit=True):
-    """The firmware's init sequence; returns the replies by name."""
+    """The firmware's init sequence; returns the replies by name. HCS goes with ACMD41 only
+    when CMD8 was answered (PLSS §4.2.3.1)."""
     replies = {}
     host.idle(arch.INIT_CLOCKS)
     host.send(0, 0)
     host.idle(arch.N_CC)
     replies["CMD8"] = host.cmd(8, arch.IF_COND_ARGUMENT)
+    hcs = arch.ACMD41_HCS if replies["CMD8"] is not None else 0
     polls = []
     while True:
-        polls.append(host.acmd(41, arch.ACMD41_HCS | arch.OCR_VOLTAGE_WINDOW))
+        polls.append(host.acmd(41, hcs | arch.OCR_VOLTAGE_WINDOW))
         if polls[-1].payload & arch.OCR_POWER_UP_DONE:
             break
         assert len(polls) < 20
@@ -353,6 +356,9 @@ def test_configurable_n_cr_and_seeded_determinism():
     (dict(busy_clocks=(0, 4)), "Busy"), (dict(busy_clocks=(9, 8)), "Busy"),
     (dict(rca=0), "RCA"), (dict(capacity_blocks=CAPACITY + 1), "Capacity"),
     (dict(n_ac=1), "N_AC"), (dict(acmd41_busy=(-1, 2)), "ACMD41"),
+    (dict(version=1), "version 1 card is standard capacity"), (dict(version=3), "Version"),
+    (dict(busy_start_delay=-1), "Busy start delay"),
+    (dict(busy_start_delay=True), "Busy start delay"),
 ])
 def test_bad_parameters(kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -725,3 +731,129 @@ def test_unexpected_dat_activity_is_reported():
     for _ in range(10):
         host.clock(dat=0x0)
     assert len(card.errors) == 1 and "no data transfer" in card.errors[0]
+
+
+# -- cards as they are: SDSC, Ver1.X, no ACMD23, late busy ---------------------------------------
+
+def csd_v1_capacity_blocks(csd: int) -> int:
+    """Capacity of a CSD 1.0 (PLSS §5.3.2), in 512-byte blocks."""
+    assert csd >> 126 == 0, "CSD_STRUCTURE 1.0"
+    read_bl_len = (csd >> 80) & 0xF
+    c_size = (csd >> 62) & 0xFFF
+    c_size_mult = (csd >> 47) & 0x7
+    assert (csd >> 22) & 0xF == read_bl_len, "WRITE_BL_LEN = READ_BL_LEN"
+    assert (csd >> 79) & 1, "READ_BL_PARTIAL is 1 on every SD card"
+    return ((c_size + 1) << (c_size_mult + 2) << read_bl_len) // arch.BLOCK_BYTES
+
+
+@pytest.mark.parametrize("blocks, expected", [
+    (CAPACITY, CAPACITY), (1000, 1000), (arch.SDSC_MAX_BLOCKS, arch.SDSC_MAX_BLOCKS),
+    (3_000_001, 2_999_296),          # rounded down to what C_SIZE can say
+])
+def test_sdsc_csd_says_the_capacity(blocks, expected):
+    card = SdCard(CardImage(blocks), high_capacity=False)
+    assert card.capacity_blocks == expected == csd_v1_capacity_blocks(card.csd)
+    assert (card.csd >> 80) & 0xF == (9 if blocks <= (1 << 21) else 10)   # §4.3.2
+
+
+def test_sdsc_over_2_gb_is_refused():
+    with pytest.raises(ValueError, match="at most 2 GB"):
+        SdCard(CardImage(arch.SDSC_MAX_BLOCKS + 1), high_capacity=False)
+
+
+def test_sdsc_card_takes_byte_addresses():
+    card, host, image = make_card(high_capacity=False, busy_clocks=(10, 10))
+    replies = initialise(host)
+    assert replies["CMD8"] is not None
+    assert replies["ACMD41"][-1].payload & arch.OCR_POWER_UP_DONE
+    assert not replies["ACMD41"][-1].payload & arch.OCR_CCS
+    data = random_block(21)
+    assert host.cmd(24, 100 * arch.BLOCK_BYTES, then=0).state is CardState.TRAN
+    assert host.write_block(data) == (arch.TOKEN_ACCEPTED, 10)
+    assert image.read_block(100) == data and len(image) == 1
+    host.idle(arch.N_RC)
+    host.cmd(17, 100 * arch.BLOCK_BYTES, then=0)
+    assert host.read_data()[:2] == (data, True)
+    host.idle(arch.N_RC)
+    # A byte address that is not a multiple of 512: ADDRESS_ERROR, no data either way.
+    r1 = host.cmd(17, 100 * arch.BLOCK_BYTES + 4, then=0)
+    assert r1.has(CardStatus.ADDRESS_ERROR) and card.state is CardState.TRAN
+    assert host.read_data(timeout=200)[0] is None
+    r1 = host.cmd(24, 7)
+    assert r1.has(CardStatus.ADDRESS_ERROR) and card.state is CardState.TRAN
+    assert not host.cmd(13, card.rca << 16).has(CardStatus.ADDRESS_ERROR)  # cleared on read
+    # Past the end, in bytes.
+    assert host.cmd(24, CAPACITY * arch.BLOCK_BYTES).has(CardStatus.OUT_OF_RANGE)
+    # A multi-block write from a byte address.
+    blocks = [random_block(30 + k) for k in range(3)]
+    host.cmd(25, 200 * arch.BLOCK_BYTES, then=0)
+    assert [host.write_block(b)[0] for b in blocks] == [arch.TOKEN_ACCEPTED] * 3
+    host.cmd(12, then=0)
+    host.wait_busy()
+    assert [image.read_block(200 + k) for k in range(3)] == blocks
+    assert card.errors == []
+
+
+def test_sdsc_block_length():
+    card, host, _ = ready_card(high_capacity=False)
+    assert card.block_length == arch.BLOCK_BYTES          # the default, without CMD16
+    assert host.cmd(16, 1024).has(CardStatus.BLOCK_LEN_ERROR)
+    assert card.block_length == arch.BLOCK_BYTES
+    assert not host.cmd(16, 256).has(CardStatus.BLOCK_LEN_ERROR)
+    assert card.block_length == 256
+    # The model moves whole 512-byte blocks only, and says so.
+    assert host.cmd(17, 0).has(CardStatus.BLOCK_LEN_ERROR)
+    assert len(card.errors) == 1 and "block length 256" in card.errors[0]
+    host.cmd(16, 512)
+    host.send(0, 0)                                       # CMD0: back to 512
+    assert card.block_length == arch.BLOCK_BYTES
+
+
+def test_version_1_card_ignores_cmd8_and_hcs():
+    card, host, _ = make_card(high_capacity=False, version=1)
+    replies = initialise(host)
+    assert replies["CMD8"] is None
+    assert not replies["ACMD41"][-1].payload & arch.OCR_CCS
+    assert card.state is CardState.TRAN and card.errors == []
+    cmd8 = next(t for t in card.log if isinstance(t, Transaction) and t.command == "CMD8")
+    assert cmd8.response is Response.NONE and "Ver1.X" in cmd8.note
+    # ILLEGAL_COMMAND went out with the next response, the first CMD55's R1.
+    first_r1 = next(t for t in card.log if isinstance(t, Transaction) and t.command == "CMD55")
+    assert first_r1.value & CardStatus.ILLEGAL_COMMAND
+
+
+def test_version_1_card_reports_hcs():
+    card, host, _ = make_card(high_capacity=False, version=1, acmd41_busy=(0, 0))
+    host.idle(arch.INIT_CLOCKS)
+    assert host.cmd(8, arch.IF_COND_ARGUMENT) is None
+    r3 = host.acmd(41, arch.ACMD41_HCS | arch.OCR_VOLTAGE_WINDOW)
+    assert r3.payload & arch.OCR_POWER_UP_DONE and not r3.payload & arch.OCR_CCS
+    assert len(card.errors) == 1 and "HCS" in card.errors[0]
+
+
+def test_card_without_acmd23():
+    card, host, image = ready_card(acmd23=False)
+    assert host.acmd(23, 4) is None                       # taken as CMD23: illegal
+    assert card.pre_erase_count is None
+    assert host.cmd(13, card.rca << 16).has(CardStatus.ILLEGAL_COMMAND)
+    assert not host.cmd(13, card.rca << 16).has(CardStatus.ILLEGAL_COMMAND)
+    blocks = [random_block(40 + k) for k in range(2)]
+    host.cmd(25, 50, then=0)
+    assert [host.write_block(b)[0] for b in blocks] == [arch.TOKEN_ACCEPTED] * 2
+    host.cmd(12, then=0)
+    host.wait_busy()
+    assert [image.read_block(50 + k) for k in range(2)] == blocks
+    assert card.errors == []          # a host may try ACMD23: not a protocol violation
+
+
+@pytest.mark.parametrize("delay", [0, 3, arch.BUSY_START_CLOCKS])
+def test_busy_start_delay(delay):
+    card, host, image = ready_card(busy_start_delay=delay, busy_clocks=(12, 12))
+    host.cmd(25, 60, then=0)
+    for k in range(2):
+        token, busy = host.write_block(random_block(k), grace=delay + 2)
+        assert (token, busy, host.busy_start) == (arch.TOKEN_ACCEPTED, 12, delay)
+    # CMD12's R1b: busy starts ``delay`` clocks after the response's end bit.
+    host.cmd(12, then=0)
+    assert host.wait_busy(grace=delay + 2) == 12 and host.busy_start == delay
+    assert image.read_block(61) == random_block(1) and card.errors == []
