@@ -1,7 +1,7 @@
 """DMA between the ring buffer, a CPU sector buffer and the SD host's byte streams."""
 
 from amaranth import *
-from amaranth.lib import enum, stream, wiring
+from amaranth.lib import data, enum, stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
@@ -14,6 +14,13 @@ __all__ = ["DmaSource", "Dma"]
 
 WORD_BYTES = 4
 BUFFER_WORDS = arch_sd.BLOCK_BYTES // WORD_BYTES
+
+#: A write into the sector buffer: word address, data, byte-lane enables.
+BufferWrite = data.StructLayout({
+    "addr": range(BUFFER_WORDS),
+    "data": 32,
+    "en":   WORD_BYTES,
+})
 
 
 class DmaSource(enum.Enum, shape=1):
@@ -132,23 +139,24 @@ class Dma(wiring.Component):
         # (the DMA while it sends the buffer). A read port is given the next cycle's address.
         write_port = buffer.write_port(granularity=8)
         read_port = buffer.read_port()
-        cpu_write_addr  = Signal(range(BUFFER_WORDS))
-        cpu_write_data  = Signal(32)
-        cpu_write_en    = Signal()
-        fill_write_addr = Signal(range(BUFFER_WORDS))
-        fill_write_data = Signal(32)
-        fill_write_en   = Signal(WORD_BYTES)      # the byte lane of the filled byte
-        cpu_read_addr   = Signal(range(BUFFER_WORDS))
-        dma_read_addr   = Signal(range(BUFFER_WORDS))
-        with m.If(fill_write_en.any()):
-            m.d.comb += [write_port.addr.eq(fill_write_addr), write_port.data.eq(fill_write_data),
-                         write_port.en.eq(fill_write_en)]
+        cpu_write = Signal(BufferWrite)
+        fill_write = Signal(BufferWrite)
+        with m.If(fill_write.en.any()):
+            m.d.comb += [write_port.addr.eq(fill_write.addr), write_port.data.eq(fill_write.data),
+                         write_port.en.eq(fill_write.en)]
         with m.Else():
-            m.d.comb += [write_port.addr.eq(cpu_write_addr), write_port.data.eq(cpu_write_data),
-                         write_port.en.eq(Mux(cpu_write_en, (1 << WORD_BYTES) - 1, 0))]
+            m.d.comb += [write_port.addr.eq(cpu_write.addr), write_port.data.eq(cpu_write.data),
+                         write_port.en.eq(cpu_write.en)]
 
-        # Ring status.
-        ring = self.ring
+        self._ring_status(m)
+        cpu_read_addr = self._cpu_access(m, cpu_write, read_port.data)
+        self._fill_from_sd(m, fill_write)
+        self._write_side(m, read_port, cpu_read_addr)
+        return m
+
+    def _ring_status(self, m):
+        """The ring's figures to the registers; releases and clear to the ring."""
+        ring, control = self.ring, self._control.f
         m.d.comb += [
             self._level.f.bytes.r_data.eq(ring.level),
             self._high_water.f.bytes.r_data.eq(ring.high_water),
@@ -156,10 +164,12 @@ class Dma(wiring.Component):
             self._dropped.f.frames.r_data.eq(ring.dropped),
             ring.release.eq(self._release.f.sectors.w_stb),
             ring.release_sectors.eq(self._release.f.sectors.w_data),
-            ring.clear.eq(self._control.f.clear.w_stb & self._control.f.clear.w_data),
+            ring.clear.eq(control.clear.w_stb & control.clear.w_data),
         ]
 
-        # CPU access to the sector buffer, a word at a time, the index moving on.
+    def _cpu_access(self, m, cpu_write, read_data):
+        """CPU access to the sector buffer, a word at a time, the index moving on; returns
+        the address the CPU wants on the read port."""
         index = Signal(range(BUFFER_WORDS))
         index_next = Signal.like(index)
         seek, write, read = (self._buffer_seek.f.index, self._buffer_write.f.word,
@@ -171,29 +181,33 @@ class Dma(wiring.Component):
         with m.Else():
             m.d.comb += index_next.eq(index)
         m.d.sync += index.eq(index_next)
-        # The read port is given the next index (a word just written is not read back at once).
         m.d.comb += [
-            cpu_read_addr.eq(index_next),
-            read.r_data.eq(read_port.data),
-            cpu_write_addr.eq(index),
-            cpu_write_data.eq(write.w_data),
-            cpu_write_en.eq(write.w_stb),
+            read.r_data.eq(read_data),
+            cpu_write.addr.eq(index),
+            cpu_write.data.eq(write.w_data),
+            cpu_write.en.eq(Mux(write.w_stb, (1 << WORD_BYTES) - 1, 0)),
         ]
+        # The read port is given the next index (a word just written is not read back at once).
+        return index_next
 
-        # SD read data fills the buffer from its start (after arm_read).
+    def _fill_from_sd(self, m, fill_write):
+        """SD read data fills the buffer from its start (after `arm_read`), a byte lane at a
+        time."""
         fill = Signal(range(arch_sd.BLOCK_BYTES + 1))
         control = self._control.f
         m.d.comb += [
-            fill_write_addr.eq(fill[2:]),
-            fill_write_data.eq(Cat([self.sd_o.payload] * WORD_BYTES)),
+            fill_write.addr.eq(fill[2:]),
+            fill_write.data.eq(Cat([self.sd_o.payload] * WORD_BYTES)),
         ]
         with m.If(self.sd_o.valid & (fill < arch_sd.BLOCK_BYTES)):
-            m.d.comb += fill_write_en.eq(1 << fill[:2])
+            m.d.comb += fill_write.en.eq(1 << fill[:2])
             m.d.sync += fill.eq(fill + 1)
         with m.If(control.arm_read.w_stb & control.arm_read.w_data):
             m.d.sync += fill.eq(0)
 
-        # Write side: sectors from the ring, or the buffer, to the SD host.
+    def _write_side(self, m, read_port, cpu_read_addr):
+        """Sectors from the ring, or the buffer, to the SD host."""
+        ring, control = self.ring, self._control.f
         busy    = Signal()
         source  = Signal(DmaSource)
         sectors = Signal(16)
@@ -248,7 +262,7 @@ class Dma(wiring.Component):
             ]
         # The buffer's read port is given the word of the byte after a transfer.
         step = self.sd_i.valid & self.sd_i.ready
-        m.d.comb += dma_read_addr.eq(Mux(step, count + 1, count)[2:])
+        dma_read_addr = Mux(step, count + 1, count)[2:]
         sending = busy & (source == DmaSource.BUFFER)
         with m.If(starting & (control.source.w_data == DmaSource.BUFFER)):
             m.d.comb += read_port.addr.eq(0)        # the first word, ready when sending starts
@@ -256,10 +270,9 @@ class Dma(wiring.Component):
             m.d.comb += read_port.addr.eq(dma_read_addr)
         with m.Else():
             m.d.comb += read_port.addr.eq(cpu_read_addr)
-        with m.If(self.sd_i.valid & self.sd_i.ready):
+        with m.If(step):
             m.d.sync += count.eq(count + 1)
             with m.If(count == arch_sd.BLOCK_BYTES - 1):
                 m.d.sync += [count.eq(0), asked.eq(0), sent.eq(sent + 1)]
                 with m.If(sent + 1 == sectors):
                     m.d.sync += busy.eq(0)
-        return m
