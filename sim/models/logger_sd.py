@@ -49,14 +49,12 @@ class Answer:
     """What the card does with a command: its response (None: silence) and what follows.
 
     ``busy_s`` is the time DAT0 stays low after an R1b; ``read`` the LBA of a block the card
-    sends after the response; ``write`` True when it now waits for blocks (``multi``: more
-    than one)."""
-    __slots__ = ("response", "index", "payload", "busy_s", "read", "write", "multi")
+    sends after the response (a write's blocks are taken while the card is in rcv)."""
+    __slots__ = ("response", "index", "payload", "busy_s", "read")
 
-    def __init__(self, response=None, index=0, payload=0, *, busy_s=0.0, read=None,
-                 write=None, multi=False):
+    def __init__(self, response=None, index=0, payload=0, *, busy_s=0.0, read=None):
         self.response, self.index, self.payload = response, index, payload
-        self.busy_s, self.read, self.write, self.multi = busy_s, read, write, multi
+        self.busy_s, self.read = busy_s, read
 
     def bits(self):
         return response_bits(self.response, self.index, self.payload)
@@ -242,7 +240,7 @@ class ModelCard:
             self.state = CardState.RCV
             self.write_lba = lba
             self.multi = index == Command.WRITE_MULTIPLE_BLOCK
-            return self._r1(index, before, write=True, multi=self.multi)
+            return self._r1(index, before)
         raise _Illegal
 
     def _app(self, now_s, index, argument, before):
