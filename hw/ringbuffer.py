@@ -57,6 +57,9 @@ class RingPort(wiring.Signature):
     def __eq__(self, other):
         return isinstance(other, RingPort) and other.level_bits == self.level_bits
 
+    def __hash__(self):
+        return hash((RingPort, self.level_bits))
+
     def __repr__(self):
         return f"RingPort({self.level_bits})"
 
