@@ -199,3 +199,10 @@ def test_clear_empties_the_ring_and_the_counters_keep_counting():
     assert sector[:level] == stream and sector[level:] == bytes(SECTOR - level)
     assert kept == len(before) + len(after)
     assert high_water_after == high_water
+
+
+def test_ring_port_width_is_checked():
+    from maglog.hw.ringbuffer import RingPort
+    with pytest.raises(ValueError, match="Level width must be a positive integer, not 0"):
+        RingPort(0)
+    assert RingPort(15) == RingPort(15) != RingPort(16)
