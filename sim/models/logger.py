@@ -23,6 +23,17 @@ What is modelled, and at which grain:
   and the card, and the firmware (the bus raises :class:`~maglog.sw.bus.HardwareReset`).
 
 A register access costs :data:`ACCESS_CYCLES` system clocks.
+
+The harness::
+
+    model = LoggerModel(card_image, clk_freq=50e6, channels=DEFAULT_CHANNELS, ...)
+    model.feed(channel, data, start=seconds)        # bytes back to back on a line
+    model.press_button(at, hold=0.2)
+    model.cut_power(after_blocks=N) or model.cut_power(at=seconds)
+    model.remove_card(at, reinsert=None)
+    result = model.run(firmware, until)             # firmware(bus): restarted after resets
+    model.call(coroutine)                           # one coroutine on the bus, outside run
+    run_system(scenario, firmware, image)           # a SystemScenario, as on the gateware
 """
 
 from __future__ import annotations
