@@ -27,18 +27,6 @@ MiB = 1 << 20
 
 # -- Harness ----------------------------------------------------------------------------------
 
-@pytest.fixture(autouse=True)
-def plain_wait_event(monkeypatch):
-    """The model bus's fast ``wait_event`` (aa7be90) misses an event that happens during
-    the poll's own read, after the value was sampled (e.g. the SD writer ending one cycle
-    after ``sdio.status`` was sampled): it then skips to the next event after it, which in a
-    final flush is the end of the run. Until that is fixed the tests poll as
-    :meth:`RegisterBus.wait_event` does (the same reads at the same instants, by the fast
-    version's own contract)."""
-    from maglog.sim.models.logger import ModelBus
-    from maglog.sw.bus import RegisterBus
-    monkeypatch.setattr(ModelBus, "wait_event", RegisterBus.wait_event)
-
 def blank_card(tmp_path, size=40 * MiB, cluster_bytes=512, files=None, fat_tools=None):
     """A freshly formatted card image (``files``: name → bytes copied on with mtools)."""
     path = tmp_path / "blank.img"
