@@ -4,20 +4,24 @@ the SoC's registers, and its speed.
 
 Expected card contents come from the reference filter and sim/system.py's scenarios (the
 time each kept frame ends), never from the model.
+
+The tests take the gateware's own memory map (hw.top.Logger); the driver is sw.sdcard's, a
+ring flush is written here by hand (level, ring-mode DMA write, release of whole sectors).
 """
 
 import time
 
 import pytest
 
+from maglog.calib.card import read_logs
 from maglog.hw.arch import sd as arch_sd
 from maglog.hw.arch.frames import COUNTER_NAMES
 from maglog.hw.arch.sdram import MT48LC4M32B2
 from maglog.hw.dma import DmaSource
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import DEFAULT_CHANNELS
-from maglog.hw.soc import csr
 from maglog.hw.peripherals import Events, Leds
+from maglog.hw.soc import csr
 from maglog.hw.storage import Storage
 from maglog.hw.top import EVENT_NAMES, Logger
 from maglog.sim import sentences
@@ -27,15 +31,18 @@ from maglog.sim.models.logger_frontend import RECEIVED_BITS
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.streams import CESIUM_RATE_HZ, GPS_RATE_HZ, MAG_RATE_HZ, demo_streams
 from maglog.sim.system import short_scenario
+from maglog.sw.app import LoggerApp
 from maglog.sw.bus import BusTimeout, PowerCut, RegisterBus
+from maglog.sw.fat32 import format_image
 from maglog.sw.regmap import RegisterMap
 from maglog.sw.sdcard import SdCardDriver, SdNoCard, SdWriteError
 
 SECTOR = arch_sd.BLOCK_BYTES
 FIRST_LBA = 8192
 CLK = 50e6
-KINDS = {ChannelKind.PMAG: Kind.PMAG, ChannelKind.NMEA: Kind.NMEA, ChannelKind.CESIUM: Kind.CESIUM}
-#: Only the gateware's own map is used: built once (elaborating nothing, but still slow-ish).
+KINDS = {ChannelKind.PMAG: Kind.PMAG, ChannelKind.NMEA: Kind.NMEA,
+         ChannelKind.CESIUM: Kind.CESIUM}
+#: The gateware's memory maps, by channels and clock (a Logger takes a while to build).
 _MAPS = {}
 
 
@@ -659,3 +666,43 @@ def test_a_minute_of_default_rates_runs_fast():
 @pytest.mark.slow
 def test_an_hour_of_default_rates_runs_in_minutes_at_most():
     assert _speed(3600.0) > 20
+
+
+def _channel_of(frame):
+    return 0 if frame.startswith(b"$PMAG1,") else 2 if frame[1:2] in b" 1" else 1
+
+
+@pytest.mark.slow
+def test_an_hour_recorded_by_the_application_loop(tmp_path):
+    # The firmware itself (sw.app) on a formatted card: a press starts the recording, a
+    # press an hour later stops it; the log holds, channel by channel, an unbroken run of
+    # the frames the reference filter keeps.
+    seconds = 3600.0
+    streams, paced = paced_demo(seconds, seed=5)
+    path = tmp_path / "card.img"
+    format_image(path, 4 << 30)
+    model = LoggerModel(CardImage.load(path), memory_map=gateware_map())
+    for channel, start, data in paced:
+        model.feed(channel, data, start=start)
+    model.press_button(0.5, hold=0.2)
+    model.press_button(seconds - 0.5, hold=0.2)
+    started = time.process_time()
+    result = model.run(lambda bus: LoggerApp(bus, model.memory_map, sys_clock_hz=CLK).run(),
+                       until=seconds + 1)
+    cpu = time.process_time() - started
+    print(f"\nthe application loop: {seconds:.0f} s simulated in {cpu:.1f} s of CPU "
+          f"({seconds / cpu:.0f} simulated s per CPU s), {result.blocks_written} blocks")
+    assert result.resets == 0 and not result.power_cut
+    result.image.save(tmp_path / "out.img")
+    (name, log), = read_logs(tmp_path / "out.img")
+    frames = [b"$" + f for f in log.split(b"$")[1:]]
+    assert b"".join(frames) == log
+    for k, name in enumerate(("mag", "gps", "cesium")):
+        kept = reference_filter(KINDS[DEFAULT_CHANNELS[k].kind], streams[name]).frames
+        logged = [f for f in frames if _channel_of(f) == k]
+        starts = [i for i in range(len(kept) - len(logged) + 1)
+                  if all(kept[i + j] == frame for j, frame in enumerate(logged))]
+        assert starts, f"channel {k}: the log is not a run of the kept frames"
+        # (The run begins within a second of the start, and ends within one of the stop.)
+        assert starts[0] <= 40 and len(kept) - starts[0] - len(logged) <= 40
+    assert seconds / cpu > 20
