@@ -477,7 +477,9 @@ class LoggerModel:
         self._fe_reset_at = now
         # Record gate, ring, SDRAM controller.
         self._record = 0
-        self._path = deque()    # [start, end (None: not at the gate yet), frame, stored, fits]
+        # Frames from the front end to the ring: [start, end (None: not at the gate yet),
+        # frame, stored, fits, channel].
+        self._path = deque()
         self._path_free = now
         self._sdram_ready_at = now + self._sdram_init
         self.storage.reset()
@@ -533,26 +535,19 @@ class LoggerModel:
         counters[decision.outcome] = (counters[decision.outcome] + 1) & 0xFFFFFFFF
         if decision.frame is None:
             return
-        frame, channel = decision.frame, decision.channel
-        if decision.flush:
+        frame = decision.frame
+        if decision.flush:                  # the filter's flush strobe, at the line end
             self._flush_times.append(self.now_s)
             self._event("fix")
-        if channel < 2:
-            self._activity(channel)
-        if channel == self.gps_channel:
-            zda = parse_zda(frame)
-            if zda is not None:
-                self._gps = zda
-                self._event("zda")
         start = max(self.now, self._path_free)
         self._path_free = start + len(frame) * RING_BYTE_CYCLES
-        self._path.append([start, None, frame, False, False])
+        self._path.append([start, None, frame, False, False, decision.channel])
 
     def _pass_gate(self):
-        """The head frame of the gate's path reaches the gate (its first byte: stored or
-        drained whole) or, passing, the ring (its last byte: committed)."""
+        """The head frame of the path reaches the gate (its first byte: stored or drained
+        whole) or has passed it (its last byte: committed to the ring)."""
         head = self._path[0]
-        start, end, frame, stored, fits = head
+        start, end, frame, stored, fits, channel = head
         if end is None:
             head[1] = start + len(frame) * RING_BYTE_CYCLES
             if self._record:
@@ -567,6 +562,15 @@ class LoggerModel:
         self._path.popleft()
         if fits:
             self.storage.ring.commit_frame(self.now, len(frame))
+        # The channel's last byte has left it: its kept strobe (activity LEDs), and the GPS
+        # time capture that watches the front end's output.
+        if channel < 2:
+            self._activity(channel)
+        if channel == self.gps_channel:
+            zda = parse_zda(frame)
+            if zda is not None:
+                self._gps = zda
+                self._event("zda")
 
     @property
     def _in_frame(self):

@@ -26,7 +26,8 @@ from maglog.hw.storage import Storage
 from maglog.hw.top import EVENT_NAMES, Logger
 from maglog.sim import sentences
 from maglog.sim.models.card_image import CardImage
-from maglog.sim.models.logger import ACCESS_CYCLES, LoggerModel, RunResult, run_system
+from maglog.sim.models.logger import (ACCESS_CYCLES, RING_BYTE_CYCLES, LoggerModel,
+                                      RunResult, run_system)
 from maglog.sim.models.logger_frontend import RECEIVED_BITS
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.streams import CESIUM_RATE_HZ, GPS_RATE_HZ, MAG_RATE_HZ, demo_streams
@@ -495,7 +496,10 @@ def test_activity_leds_follow_kept_frames_and_the_firmware_bits():
     end_of_frame = 0.1 + ((len(frame) - 1) * 10 + RECEIVED_BITS) / DEFAULT_CHANNELS[0].baud
     (t_on, on), (t_off, off), (t_fix, fix) = model.leds[1:]
     assert (on, off, fix) == (0b0010, 0, 0b1000)
-    assert t_on == pytest.approx(end_of_frame, abs=1e-6)
+    # Lit as the frame's last byte leaves the channel, after it went through at a byte a
+    # clock; dark the stretch later.
+    assert t_on == pytest.approx(end_of_frame + len(frame) * RING_BYTE_CYCLES / CLK,
+                                 abs=2 / CLK)
     assert t_off - t_on == pytest.approx(0.05, abs=1e-6)
 
 
