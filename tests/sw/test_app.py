@@ -406,3 +406,34 @@ def test_a_failed_data_write_leaves_the_file_as_its_last_sync(tmp_path, fat_tool
     assert sizes[2] > 0 and found["LOG00001.TXT"] == stream_of(frames)[:sizes[2]]
     second = contiguous_frames(found["LOG00002.TXT"], frames)
     assert second is not None and second[1] == len(frames)
+
+
+# -- Power cuts -------------------------------------------------------------------------------
+
+def test_power_cuts_during_a_recording_leave_a_recoverable_card(tmp_path, fat_tools):
+    # Cut the power after every few blocks the card stores during a recording: fsck finds at
+    # most what a cut during a sync may leave (see test_fat32), and the log file holds a
+    # prefix of the recorded frames.
+    from .test_fat32 import _RECOVERABLE
+
+    scenario = long_scenario(until=1.2, presses=(0.3, 1.0), stop=0.95)
+    blank = blank_card(tmp_path)
+    stream = stream_of(scenario.recorded_frames())
+    model = model_of(scenario, blank)
+    start, _ = firmware(model)
+    total = model.run(start, until=scenario.until).blocks_written
+    assert total > 20
+    kept = []
+    for cut in range(1, total, max(1, total // 12)):
+        model = model_of(scenario, blank)
+        model.cut_power(after_blocks=cut)
+        start, _ = firmware(model)
+        result = model.run(start, until=scenario.until)
+        assert result.power_cut and result.blocks_written == cut
+        path = saved(result, tmp_path, f"cut{cut}.img")
+        findings = fsck_findings(fat_tools["fsck.fat"], path, tmp_path)
+        assert [line for line in findings if not _RECOVERABLE.match(line)] == [], cut
+        data = logs(path).get("LOG00001.TXT", b"")
+        assert stream.startswith(data), cut
+        kept.append(len(data))
+    assert kept[0] == 0 and any(0 < n < len(stream) for n in kept)   # before, during the log
