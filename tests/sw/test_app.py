@@ -7,6 +7,7 @@ filter keeps over the recording, in order (read back with calib.card).
 """
 
 import subprocess
+import sys
 
 import pytest
 
@@ -437,3 +438,12 @@ def test_power_cuts_during_a_recording_leave_a_recoverable_card(tmp_path, fat_to
         assert stream.startswith(data), cut
         kept.append(len(data))
     assert kept[0] == 0 and any(0 < n < len(stream) for n in kept)   # before, during the log
+
+
+def test_the_firmware_imports_no_gateware():
+    # Only hw/arch (constants) and, through sw.regmap's map reader, Amaranth's shapes.
+    code = ("import sys, maglog.sw.app; print(' '.join(sorted(m for m in sys.modules if "
+            "m.startswith('maglog.hw.') and not m.startswith('maglog.hw.arch'))))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            check=True, timeout=60)
+    assert result.stdout.strip() == ""
