@@ -16,6 +16,7 @@ from maglog.calib.card import read_logs
 from maglog.hw.dma import DmaSource
 from maglog.sw import storage as sw_storage
 from maglog.sw.fat32 import ImageFile, Volume, format_image
+from maglog.sw.regmap import RegisterMap
 from maglog.sw.storage import DmaStorage, RingError, flush_ring
 
 from .test_fat32 import fsck_findings
@@ -160,3 +161,59 @@ def test_flush_refuses_a_ring_out_of_step_with_the_file(tmp_path):
             return log.size
 
     assert asyncio.run(work()) == 700
+
+
+class NarrowDma(DmaStorage):
+    """The DMA as if its ``first`` field reached 8 ring sectors and ``sectors`` held 4: a
+    flush of more must go in rounds, and a run in several write commands."""
+
+    def _limit(self, field):
+        return {"first": 8, "sectors": 5}[field]
+
+
+def test_flush_rounds_and_split_writes_on_the_logger_model(tmp_path, fat_tools):
+    from maglog.sim import sentences
+    from maglog.sim.models.card_image import CardImage
+    from maglog.sim.models.logger import LoggerModel
+    from maglog.sim.system import Burst, SystemScenario, short_scenario
+
+    # 300 magnetometer frames back to back (about 13 KB in 0.57 s); flushes at 0.3 s and
+    # at the end, each more than 8 sectors.
+    frames = b"".join(sentences.pmag1(n, 100.0 * n, -2000.0, 3000.5) for n in range(300))
+    base = short_scenario()
+    scenario = SystemScenario(channels=base.channels, clk_freq=base.clk_freq,
+                              bursts=[Burst(0, 0.05, frames)], presses=[], until=0.7)
+    card = tmp_path / "card.img"
+    format_image(card, 80 * MiB, cluster_bytes=1024, volume_id=1)
+    model = LoggerModel(CardImage.load(card), clk_freq=scenario.clk_freq,
+                        channels=scenario.channels)
+    for burst in scenario.bursts:
+        model.feed(burst.channel, burst.data, start=burst.start)
+    logger = RegisterMap(model.memory_map, window="logger")
+
+    async def main():
+        disk = NarrowDma(model.bus, model.memory_map, sys_clock_hz=scenario.clk_freq)
+        await disk.driver.initialise()
+        volume = await Volume.mount(disk.device)
+        log = await volume.create_log(T0)
+        control = logger["control"]
+        await model.bus.write(control.address, control.encode(record=1))
+        flushes = []
+        for until in (0.3, 0.68):
+            await model.bus.wait(until - model.bus.now())
+            flushes.append(await flush_ring(log, disk, T0))
+        await model.bus.write(control.address, control.encode(record=0))
+        await log.close(T0)
+        return log.name, flushes, await disk.read("level")
+
+    name, flushes, level = model.call(main())
+    expected = b"".join(scenario.log_frames(0.0, scenario.until))
+    assert len(expected) == len(frames)
+    assert sum(f.bytes for f in flushes) == len(expected) and level == len(expected) % 512
+    # More than 8 sectors a flush: rounds; no command over 4 sectors.
+    assert all(f.sectors > 8 for f in flushes)
+    assert all(f.writes >= -(-f.sectors // 4) for f in flushes)
+    out = tmp_path / "out.img"
+    model.image.save(out)
+    assert fsck_findings(fat_tools["fsck.fat"], out, tmp_path) == []
+    assert dict(read_logs(out)) == {name: expected}
