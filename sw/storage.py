@@ -185,10 +185,6 @@ class DmaStorage:
         control = self.dma["control"]
         await self.bus.write(control.address, control.encode(abort=1))
 
-    async def busy(self):
-        status = self.dma["status"]
-        return bool(status.field("busy").extract(await self.bus.read(status.address)))
-
     async def write_ring(self, lba, first, count):
         """Write ``count`` ring sectors from ring sector ``first`` on to blocks ``lba`` on, in
         DMA commands the ``sectors`` and ``first`` fields can hold; returns the number of
