@@ -160,6 +160,16 @@ def test_short_recording(tmp_path, fat_tools):
     assert led_on_between(result.leds, LED_FIX, 0.13, 0.2)      # GGA fixes every 20 ms
 
 
+def test_short_recording_on_an_sdhc_card(tmp_path, fat_tools):
+    # 2200 MiB formatted as the SD Association does (32 KiB clusters).
+    scenario = short_scenario(seed=5)
+    model = model_of(scenario, blank_card(tmp_path, size=2200 * MiB, cluster_bytes=None))
+    start, _ = firmware(model)
+    path = saved(model.run(start, until=scenario.until), tmp_path)
+    assert fsck_findings(fat_tools["fsck.fat"], path, tmp_path) == []
+    assert logs(path) == {"LOG00001.TXT": stream_of(scenario.recorded_frames())}
+
+
 def test_flush_on_high_water_without_fixes(tmp_path, fat_tools):
     # No GGA at all: the ring (4 KiB) fills past half and is flushed without a fix event;
     # nothing is dropped.
