@@ -45,18 +45,19 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
+from ...hw.arch import frames as arch_frames
 from ...hw.arch import sd as arch_sd
 from ...hw.arch import sdram as arch_sdram
-from ...hw.arch import frames as arch_frames
 from ...hw.arch.frames import COUNTER_NAMES
 from ...hw.frontend import DEFAULT_CHANNELS, ChannelConfig
-from ...hw.top import EVENT_NAMES, GPS_CHANNEL, LOGGER_ID, Logger
+from ...hw.top import GPS_CHANNEL, Logger
 from ...sw.bus import BusTimeout, HardwareReset, PowerCut, RegisterBus
 from ...sw.regmap import RegisterMap
 from .logger_frontend import ChannelLine, parse_zda
-from .logger_sd import ModelCard
-from .logger_storage import StoragePath
 from ..system import SystemResult
+from .logger_sd import ModelCard
+from .logger_soc import SocPeripherals
+from .logger_storage import StoragePath
 
 
 __all__ = ["LoggerModel", "ModelBus", "RunResult", "SimulationEnd", "ACCESS_CYCLES",
@@ -173,7 +174,7 @@ def logger_memory_map(*, channels=DEFAULT_CHANNELS, clk_freq=50e6, **parameters)
     return Logger(channels, clk_freq=clk_freq, **parameters).bus.memory_map
 
 
-class LoggerModel:
+class LoggerModel(SocPeripherals):
     """The logger at transaction level, in simulated time.
 
     Parameters
@@ -504,20 +505,6 @@ class LoggerModel:
                 self._cut_after = None
                 self._power_cut()
 
-    def _watchdog_fire(self):
-        self._wd_enable, self._wd_cause = 0, 1
-        self._wd_deadline = _INF
-        self.resets += 1
-        self._reset_hardware()
-        raise HardwareReset(f"watchdog reset at {self.now_s} s")
-
-    def _watchdog_restart(self):
-        """A kick or a write of ``control``: the count starts again (the watchdog is
-        outside the logger's reset, so its expiry is kept apart from the event queue)."""
-        self._wd_deadline = self.now + self._wd_timeout * self._prescaler + 2 \
-            if self._wd_enable else _INF
-        self._next_due = min(self._next_due, self._wd_deadline)
-
     # -- front end, record gate, ring -----------------------------------------------------------
 
     def _rebuild_frontend(self):
@@ -576,48 +563,6 @@ class LoggerModel:
     def _in_frame(self):
         """The gate passes a frame into the ring (from its first byte to its last)."""
         return int(bool(self._path) and self._path[0][0] <= self.now and self._path[0][3])
-
-    # -- SoC ------------------------------------------------------------------------------------
-
-    def _event(self, name):
-        self._events.add(name)
-
-    def _activity(self, k):
-        self._act_until[k] = self.now + 1 + self._stretch
-        self._update_leds()
-        if not self._act_pending[k]:
-            self._act_pending[k] = True
-            self._schedule(self._act_until[k], self._activity_end, k)
-
-    def _activity_end(self, k):
-        if self.now < self._act_until[k]:
-            self._schedule(self._act_until[k], self._activity_end, k)
-            return
-        self._act_pending[k] = False
-        self._update_leds()
-
-    def _update_leds(self):
-        value = self._led_value
-        lit = [self.now < until for until in self._act_until]
-        led = (value & 0b1001) | ((value >> 1 & 1 | lit[0]) << 1) | ((value >> 2 & 1 | lit[1]) << 2)
-        if led != self._leds[-1][1]:
-            self._leds.append((self.now_s, led))
-
-    def _button_input(self, level):
-        self._schedule(self.now + 2, self._button_synced, level, hardware=False)
-
-    def _button_synced(self, level):
-        self._btn_sync = level
-        self._btn_gen += 1
-        if level != self._btn_level:
-            self._schedule(self.now + self._debounce, self._button_settle, self._btn_gen)
-
-    def _button_settle(self, generation):
-        if generation != self._btn_gen:
-            return
-        self._btn_level = self._btn_sync
-        if self._btn_level:
-            self._event("button")
 
     # -- registers ------------------------------------------------------------------------------
 
@@ -707,89 +652,6 @@ class LoggerModel:
     def _bus_wait(self, seconds):
         _check_seconds(seconds, "Wait")
         self._advance(self.now + self._cycles(seconds))
-
-    # window logger
-    def _r_logger_id(self):
-        return {"magic": LOGGER_ID}
-
-    def _r_logger_control(self):
-        return {"record": self._record}
-
-    def _w_logger_control(self, f):
-        self._record = f["record"]
-
-    def _r_logger_status(self):
-        return {"in_frame": self._in_frame, "sdram_ready": int(self.now >= self._sdram_ready_at),
-                "button": self._btn_level}
-
-    def _r_logger_fw_status(self):
-        return dict(self._fw_status)
-
-    def _w_logger_fw_status(self, f):
-        self._fw_status = {name: f[name] for name in ("state", "error", "file")}
-
-    # window leds, button
-    def _r_leds_value(self):
-        return {"value": self._led_value}
-
-    def _w_leds_value(self, f):
-        self._led_value = f["value"]
-        self._update_leds()
-
-    def _r_button_status(self):
-        return {"level": self._btn_level}
-
-    # window rtc
-    def _rtc_millis(self):
-        return (self.now - self._rtc_set) // self._prescaler
-
-    def _r_rtc_seconds(self):
-        millis = self._rtc_millis()
-        self._rtc_latched = millis % 1000
-        return {"value": (self._rtc_base + millis // 1000) & 0xFFFFFFFF}
-
-    def _w_rtc_seconds(self, f):
-        self._rtc_base, self._rtc_set = f["value"], self.now
-
-    def _r_rtc_subsec(self):
-        return {"millis": self._rtc_latched}
-
-    # window watchdog
-    def _r_watchdog_control(self):
-        return {"enable": self._wd_enable, "timeout_ms": self._wd_timeout}
-
-    def _w_watchdog_control(self, f):
-        self._wd_enable, self._wd_timeout = f["enable"], f["timeout_ms"]
-        self._watchdog_restart()
-
-    def _w_watchdog_kick(self, f):
-        if f["kick"] and self._wd_enable:
-            self._watchdog_restart()
-
-    def _r_watchdog_status(self):
-        return {"reset_cause": self._wd_cause}
-
-    # window events
-    def _r_events_status(self):
-        return {name: int(name in self._events) for name in EVENT_NAMES}
-
-    def _w_events_status(self, f):
-        for name, value in f.items():
-            if value:
-                self._events.discard(name)
-
-    # window gps
-    def _r_gps_time(self):
-        hour, minute, second = self._gps[:3] if self._gps else (0, 0, 0)
-        return {"hour": hour, "minute": minute, "second": second}
-
-    def _r_gps_date(self):
-        day, month, year = self._gps[3:] if self._gps else (0, 0, 0)
-        return {"day": day, "month": month, "year": year}
-
-    def _r_gps_status(self):
-        return {"valid": int(self._gps is not None)}
-
 
 
 def run_system(scenario, firmware, image, *, card_seed=0, ring_capacity=None, **card_options):
