@@ -200,6 +200,67 @@ def sdram_bandwidth(report):
                  rows, "llrrrr") + ["", f"Words per run: {thousands(report['results'][0]['words'])}."]
 
 
+# --- write_amplification.json -----------------------------------------------------------
+
+WA_SCHEMES = {"firmware": "the firmware's",
+              "fsinfo_on_allocation": "FSInfo only on allocation",
+              "whole_sectors_preallocated": "whole sectors, clusters preallocated"}
+
+
+def write_amplification(report):
+    goal = report["goal"]
+    results = report["results"]
+    head = ["cluster", "flushes", "bytes a flush", "data", "FAT 1", "FAT 2", "directory",
+            "FSInfo", "blocks a flush", "WA (recording)", "WA (flushes)", "floor (the "
+            "firmware's scheme)"]
+    rows = []
+    for r in results:
+        pf = r["per_flush"]
+
+        def cell(name):
+            c = pf[name]
+            return f"{c['mean']:.2f} ({c['min']}–{c['max']})"
+
+        wa = r["write_amplification"]
+        rows.append([f"{r['cluster_bytes'] // 1024} KiB", r["flushes"],
+                     f"{r['bytes_per_flush']:.0f}", cell("data"), cell("fat1"), cell("fat2"),
+                     cell("directory"), cell("fsinfo"), f"{r['blocks_per_flush']:.2f}",
+                     f"**{wa:.2f}**", f"{r['write_amplification_flushes']:.2f}",
+                     f"{r['floor']['firmware']['write_amplification']:.2f}"])
+    lines = table(head, rows, "lrrrrrrrrrrr")
+    first = results[0]
+    floors = "; ".join(
+        f"{r['cluster_bytes'] // 1024} KiB clusters: " + ", ".join(
+            f"{WA_SCHEMES[name]} {f['write_amplification']:.2f} (goal reached with a flush "
+            f"every {f['flush_period_for_goal_s']:g} s)"
+            for name, f in r["floor"].items())
+        for r in results)
+    missed = [f"{r['cluster_bytes'] // 1024} KiB" for r in results
+              if r["write_amplification"] > goal]
+    verdict = (f"The goal (≤ {goal}) is met." if not missed else
+               f"The goal (≤ {goal}) is missed with {' and '.join(missed)} clusters.")
+    if missed:
+        reach = sorted({WA_SCHEMES[name] for r in results
+                        for name, f in r["floor"].items()
+                        if f["write_amplification"] <= goal})
+        periods = ", ".join(f"{r['floor']['firmware']['flush_period_for_goal_s']:g} s "
+                            f"({r['cluster_bytes'] // 1024} KiB clusters)" for r in results)
+        verdict += (f" At one flush a second only {' and '.join(reach) or 'no scheme'} gets "
+                    f"below it; the firmware's scheme needs a flush every {periods}.")
+    lines += [
+        "",
+        f"A {first['flight_seconds']:g} s flight, {thousands(first['bytes_logged'])} bytes "
+        f"logged ({first['bytes_per_second']:.0f} B/s); block writes a flush by region: mean "
+        f"(least–most); WA: bytes the card stored per byte of the log, over the whole "
+        f"recording (the file's creation and close included: "
+        f"{first['blocks_before_first_flush']} and {first['blocks_of_close']} blocks) and "
+        f"over the flushes alone. {verdict}",
+        "",
+        f"Floors: {report['formula']}. Per scheme: {floors}.",
+    ]
+    return lines
+
+
 # --- calib.json -------------------------------------------------------------------------
 
 COVERAGE_NAMES = {"full": "full sphere", "uav": "UAV ±30°", "planar": "near-planar ±5°"}
@@ -510,6 +571,7 @@ BLOCKS = {
     "sim-throughput-div27": ("bench/results/sim_throughput_div27.json", sim_throughput),
     "sdio-throughput": ("bench/results/sdio_throughput.json", sdio_throughput),
     "sdram-bandwidth": ("bench/results/sdram_bandwidth.json", sdram_bandwidth),
+    "write-amplification": ("bench/results/write_amplification.json", write_amplification),
     "calib-accuracy": ("bench/results/calib.json", calib_accuracy),
     "calib-timing": ("bench/results/calib.json", calib_timing),
     "calib-pso": ("bench/results/calib.json", calib_pso),
