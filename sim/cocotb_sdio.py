@@ -22,6 +22,7 @@ from cocotb.simtime import get_sim_time
 from cocotb.triggers import FallingEdge, ReadOnly, RisingEdge, Timer
 
 from ..hw.arch.sd import CardState
+from .models.sdcard import SdBus
 from ..sw.bus import BlockPort as _BlockPort
 from ..sw.bus import RegisterBus
 
@@ -150,29 +151,20 @@ class ClockMeter:
 
 
 async def run_card(dut, card, meter=None):
-    """The card model on the pins (see the module documentation); ``meter`` (a
-    :class:`ClockMeter`) sees every rising edge of the SD clock."""
-    card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
+    """The card model on the pins through an :class:`~maglog.sim.models.sdcard.SdBus` (see
+    the module documentation); ``meter`` (a :class:`ClockMeter`) sees every rising edge of
+    the SD clock."""
+    bus = SdBus(card)
     while True:
         await RisingEdge(dut.sd__clk)
         if meter is not None:
             meter.rising_edge(card)
         await ReadOnly()
-        host_cmd_oe = int(dut.sd__cmd_oe.value)
-        host_dat_oe = int(dut.sd__dat_oe.value)
-        if host_cmd_oe and card_cmd_oe:
-            card.report("bus contention on CMD")
-        if host_dat_oe and card_dat_oe:
-            card.report("bus contention on DAT")
-        cmd = int(dut.sd__cmd_o.value) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
-        if host_dat_oe:
-            dat = int(dut.sd__dat_o.value)
-        else:
-            dat = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
-        card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
+        cmd, dat = bus.rising_edge(int(dut.sd__cmd_oe.value), int(dut.sd__cmd_o.value),
+                                   int(dut.sd__dat_oe.value), int(dut.sd__dat_o.value))
         await FallingEdge(dut.sd__clk)
-        dut.sd__cmd_i.value = card_cmd if card_cmd_oe else 1
-        dut.sd__dat_i.value = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
+        dut.sd__cmd_i.value = cmd
+        dut.sd__dat_i.value = dat
 
 
 @cocotb.test()
@@ -231,7 +223,9 @@ async def write_read_back(dut):
                   identification_clock_hz=meter.fastest_hz,
                   commands=[[t.command, t.argument, t.note] for t in card.log
                             if hasattr(t, "command")])
-    image.save(os.path.join(os.path.dirname(os.environ["MAGLOG_RESULT"]), "card.img"))
+    result["card_image"] = os.path.join(os.path.dirname(os.environ["MAGLOG_RESULT"]),
+                                        "card.img")
+    image.save(result["card_image"])
     with open(os.environ["MAGLOG_RESULT"], "w") as f:
         json.dump(result, f)
     assert not result["mismatches"] and not card.errors, result

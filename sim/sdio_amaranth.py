@@ -2,6 +2,7 @@
 on an :class:`~maglog.hw.sdio.host.SdioHost`, and the SD card model on its pins."""
 
 from ..sw.bus import BlockPort, RegisterBus
+from .models.sdcard import SdBus
 from .amaranth_tb import CLOCK_PERIOD, collect_payloads, run_simulation
 
 
@@ -102,26 +103,17 @@ class StreamBlockPort(BlockPort):
 async def run_card(ctx, pins, card):
     """Run an :class:`~maglog.sim.models.sdcard.SdCard` on the SD pins ``pins`` (an
     interface of :func:`~maglog.hw.sdio.host.sd_pins_signature`, as ``SdioHost().sd`` or
-    ``Storage(...).sd``): at each rising edge of ``clk`` the card sees the bus levels (host
-    drive, card drive or pull-up) and sets what it drives until the next edge. Both sides
-    driving a line is reported to the card model as a protocol error."""
-    card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
+    ``Storage(...).sd``) through an :class:`~maglog.sim.models.sdcard.SdBus`: the card sees
+    the bus at each rising edge of ``clk`` and its outputs reach the host after the falling
+    edge, as on the cocotb backend."""
+    bus = SdBus(card)
     while True:
         await ctx.posedge(pins.clk)
-        host_cmd_oe = ctx.get(pins.cmd_oe)
-        host_dat_oe = ctx.get(pins.dat_oe)
-        if host_cmd_oe and card_cmd_oe:
-            card.report("bus contention on CMD")
-        if host_dat_oe and card_dat_oe:
-            card.report("bus contention on DAT")
-        cmd = ctx.get(pins.cmd_o) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
-        if host_dat_oe:
-            dat = ctx.get(pins.dat_o)
-        else:
-            dat = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
-        card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
-        ctx.set(pins.cmd_i, card_cmd if card_cmd_oe else 1)
-        ctx.set(pins.dat_i, (card_dat & card_dat_oe) | (0xF & ~card_dat_oe))
+        cmd, dat = bus.rising_edge(ctx.get(pins.cmd_oe), ctx.get(pins.cmd_o),
+                                   ctx.get(pins.dat_oe), ctx.get(pins.dat_o))
+        await ctx.negedge(pins.clk)
+        ctx.set(pins.cmd_i, cmd)
+        ctx.set(pins.dat_i, dat)
 
 
 def run_driver(firmware, card, *, sys_clock_hz, deadline=0.2, extra=(), name="sdio_host"):

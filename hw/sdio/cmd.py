@@ -32,11 +32,11 @@ class CmdStatus(data.Struct):
 
 
 class _State(enum.Enum, shape=3):
-    IDLE      = 0
-    SEND      = 1
-    WAIT      = 2
-    RECEIVE   = 3
-    GAP       = 4
+    IDLE      = 0   # waits for `start`
+    SEND      = 1   # sends the 48 command bits, one per falling edge
+    WAIT      = 2   # waits for the response's start bit, `timeout` clocks at most
+    RECEIVE   = 3   # takes the response's bits, one per rising edge, then checks them
+    GAP       = 4   # keeps N_CC clocks before the next command
 
 
 class CmdEngine(wiring.Component):
@@ -67,23 +67,20 @@ class CmdEngine(wiring.Component):
         The last 128 bits received: for a 48-bit response its bits 47..0 sit in 47..0 (the
         card status or OCR in 39..8), for R2 the CID/CSD register's bits 127..1 and the end bit.
     """
-    def __init__(self):
-        super().__init__({
-            "rise":     In(1),
-            "fall":     In(1),
-            "cmd_o":    Out(1, init=1),
-            "cmd_oe":   Out(1),
-            "cmd_i":    In(1, init=1),
-            "start":    In(1),
-            "index":    In(arch.CMD_INDEX_BITS),
-            "argument": In(arch.CMD_ARGUMENT_BITS),
-            "kind":     In(ResponseKind),
-            "timeout":  In(16, init=arch.N_CR_MAX),
-            "busy":     Out(1),
-            "done":     Out(1),
-            "status":   Out(CmdStatus),
-            "response": Out(arch.R2_CONTENT_BITS),
-        })
+    rise:     In(1)
+    fall:     In(1)
+    cmd_o:    Out(1, init=1)
+    cmd_oe:   Out(1)
+    cmd_i:    In(1, init=1)
+    start:    In(1)
+    index:    In(arch.CMD_INDEX_BITS)
+    argument: In(arch.CMD_ARGUMENT_BITS)
+    kind:     In(ResponseKind)
+    timeout:  In(16, init=arch.N_CR_MAX)
+    busy:     Out(1)
+    done:     Out(1)
+    status:   Out(CmdStatus)
+    response: Out(arch.R2_CONTENT_BITS)
 
     def elaborate(self, platform):
         m = Module()

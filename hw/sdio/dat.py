@@ -65,24 +65,21 @@ class DatWriter(wiring.Component):
         Clocks of busy before giving up (250 ms at 25 MHz by default).
     busy, done : ``Out(1)``; status : ``Out(WriteStatus)``; accepted : ``Out(16)``
     """
-    def __init__(self):
-        super().__init__({
-            "rise":          In(1),
-            "fall":          In(1),
-            "run":           Out(1),
-            "dat_o":         Out(LANES, init=ALL_LINES),
-            "dat_oe":        Out(1),
-            "dat_i":         In(LANES, init=ALL_LINES),
-            "i":             In(stream.Signature(8)),
-            "start":         In(1),
-            "blocks":        In(16),
-            "token_timeout": In(8, init=arch.TOKEN_TIMEOUT_CLOCKS),
-            "busy_timeout":  In(32, init=arch.BUSY_TIMEOUT_CLOCKS),
-            "busy":          Out(1),
-            "done":          Out(1),
-            "status":        Out(WriteStatus),
-            "accepted":      Out(16),
-        })
+    rise:          In(1)
+    fall:          In(1)
+    run:           Out(1)
+    dat_o:         Out(LANES, init=ALL_LINES)
+    dat_oe:        Out(1)
+    dat_i:         In(LANES, init=ALL_LINES)
+    i:             In(stream.Signature(8))
+    start:         In(1)
+    blocks:        In(16)
+    token_timeout: In(8, init=arch.TOKEN_TIMEOUT_CLOCKS)
+    busy_timeout:  In(32, init=arch.BUSY_TIMEOUT_CLOCKS)
+    busy:          Out(1)
+    done:          Out(1)
+    status:        Out(WriteStatus)
+    accepted:      Out(16)
 
     def elaborate(self, platform):
         m = Module()
@@ -247,10 +244,10 @@ class ReadStatus(data.Struct):
 
 
 class _RState(enum.Enum, shape=2):
-    IDLE  = 0
-    WAIT  = 1
-    DATA  = 2
-    CRC   = 3
+    IDLE  = 0    # waits for `start`
+    WAIT  = 1    # waits for the start bit on every line, `timeout` clocks at most
+    DATA  = 2    # takes 1024 nibbles, a byte out per two
+    CRC   = 3    # compares each line's CRC16, then checks the end bit
 
 
 class DatReader(wiring.Component):
@@ -268,19 +265,16 @@ class DatReader(wiring.Component):
     o : ``Out(stream.Signature(8))``
     busy, done : ``Out(1)``; status : ``Out(ReadStatus)``
     """
-    def __init__(self):
-        super().__init__({
-            "rise":    In(1),
-            "fall":    In(1),
-            "run":     Out(1),
-            "dat_i":   In(LANES, init=ALL_LINES),
-            "start":   In(1),
-            "timeout": In(32, init=arch.READ_TIMEOUT_CLOCKS),
-            "o":       Out(stream.Signature(8)),
-            "busy":    Out(1),
-            "done":    Out(1),
-            "status":  Out(ReadStatus),
-        })
+    rise:    In(1)
+    fall:    In(1)
+    run:     Out(1)
+    dat_i:   In(LANES, init=ALL_LINES)
+    start:   In(1)
+    timeout: In(32, init=arch.READ_TIMEOUT_CLOCKS)
+    o:       Out(stream.Signature(8))
+    busy:    Out(1)
+    done:    Out(1)
+    status:  Out(ReadStatus)
 
     def elaborate(self, platform):
         m = Module()

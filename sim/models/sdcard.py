@@ -66,7 +66,8 @@ from maglog.hw.arch.sd import AppCommand, CardState, CardStatus, Command, Respon
 
 from .card_image import CardImage
 
-__all__ = ["SdCard", "Faults", "Transaction", "BlockEvent", "CardState", "crc7", "crc16"]
+__all__ = ["SdCard", "SdBus", "Faults", "Transaction", "BlockEvent", "CardState", "crc7",
+           "crc16"]
 
 #: Released lines: what ``edge`` returns while the card drives nothing.
 _RELEASED = (0, 1, 0, 0xF)
@@ -1112,6 +1113,39 @@ class SdCard:
             self.state = CardState.TRAN
         elif self.state is CardState.DIS:
             self.state = CardState.STBY
+
+
+class SdBus:
+    """The CMD and DAT lines between a host's pins and a card: written once for every
+    simulator adapter (Amaranth, cocotb), so that they resolve the bus alike.
+
+    At each rising edge of the SD clock the adapter calls :meth:`rising_edge` with what the
+    host drives; the card (anything with ``edge`` and ``report`` as :class:`SdCard` has them)
+    sees the bus levels: the host's drive, the card's own, or the pull-up's 1. The levels the
+    host reads back until the next rising edge are returned; an adapter applies them after
+    the falling edge, where a default-speed card changes its outputs. A line driven by both
+    sides is reported to the card as a protocol error.
+    """
+
+    def __init__(self, card):
+        self.card = card
+        self._cmd_oe, self._cmd, self._dat_oe, self._dat = _RELEASED
+
+    def _card_dat(self) -> int:
+        return (self._dat & self._dat_oe) | (_ALL_LINES & ~self._dat_oe)
+
+    def rising_edge(self, host_cmd_oe: int, host_cmd: int, host_dat_oe: int,
+                    host_dat: int) -> tuple[int, int]:
+        """The host's CMD and DAT outputs and enables at this edge → (cmd, dat) levels the
+        host sees until the next one."""
+        if host_cmd_oe and self._cmd_oe:
+            self.card.report("bus contention on CMD")
+        if host_dat_oe and self._dat_oe:
+            self.card.report("bus contention on DAT")
+        cmd = host_cmd if host_cmd_oe else (self._cmd if self._cmd_oe else 1)
+        dat = host_dat if host_dat_oe else self._card_dat()
+        self._cmd_oe, self._cmd, self._dat_oe, self._dat = self.card.edge(cmd, dat)
+        return (self._cmd if self._cmd_oe else 1), self._card_dat()
 
 
 def _check_range(what: str, value, low: int, high: int | None) -> tuple[int, int]:

@@ -64,7 +64,7 @@ def test_random_blocks_written_and_read_back(build, faults):
                 assert commands[k - 2][0] == "CMD55" and commands[k - 1][:2] == ["ACMD23", count]
                 assert note.endswith(f"pre-erase count {count}")
     # The image file the run left holds exactly the blocks written, the rest is zero.
-    image = CardImage.load(build.build_dir / f"run{build._runs}" / "card.img")
+    image = CardImage.load(result["card_image"])
     rng = random.Random(seed)
     for lba, count in RUNS:
         data = rng.randbytes(512 * count)
