@@ -3,9 +3,10 @@ Python.
 
 :class:`SdCard` is written from the SD Physical Layer Simplified Specification (PLSS, see
 :mod:`maglog.hw.arch.sd`), independently of the gateware: it shares nothing with hw/ but the
-protocol constants, and computes its CRCs itself. Adapters for the Amaranth simulator and for
-cocotb call :meth:`SdCard.edge` at every rising edge of the SD clock with the bus levels and
-drive the card's outputs until the next one.
+protocol constants, and computes its CRCs itself. The adapters for the Amaranth simulator and
+for cocotb go through one :class:`SdBus`, which resolves the lines (host, card, pull-up),
+calls :meth:`SdCard.edge` at every rising edge of the SD clock with the bus levels and hands
+back what the host sees until the next one.
 
 Clocking convention. ``edge(cmd, dat)`` is rising edge number :attr:`SdCard.clock` (counted
 from 0). Its inputs are the levels sampled at that edge; its outputs are what the card drives
@@ -61,8 +62,8 @@ import random
 from collections.abc import Generator, Iterable, Iterator
 from dataclasses import dataclass
 
-from maglog.hw.arch import sd as arch
-from maglog.hw.arch.sd import AppCommand, CardState, CardStatus, Command, Response
+from ...hw.arch import sd as arch
+from ...hw.arch.sd import AppCommand, CardState, CardStatus, Command, Response
 
 from .card_image import CardImage
 
