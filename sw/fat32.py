@@ -482,6 +482,7 @@ class Volume:
         #: FAT sectors read from the card so far (a measure of the cache's work).
         self.fat_reads = 0
         self._fsinfo = None
+        self._fsinfo_on_card = None             # the FSInfo sector as the card holds it
         # FAT sector index -> bytearray (FAT 1's view), least recently used first.
         self._fat = collections.OrderedDict()
         self._fat_dirty = set()
@@ -531,6 +532,7 @@ class Volume:
             return
         self.fsinfo_valid = True
         self._fsinfo = bytearray(fsi)
+        self._fsinfo_on_card = bytes(fsi)
         free, hint = _u32(fsi, arch.FSI_FREE_COUNT), _u32(fsi, arch.FSI_NXT_FREE)
         if free > self.layout.cluster_count:
             if free != arch.FSI_UNKNOWN:
@@ -657,12 +659,17 @@ class Volume:
         return cluster
 
     async def _write_fsinfo(self):
+        """Write FSInfo when its free count or next-free hint changed (an allocation): a
+        sync that allocated nothing leaves the sector as it is, a block write saved."""
         if not self.fsinfo_valid:
             return
         _put32(self._fsinfo, arch.FSI_FREE_COUNT, self.free_count)
         _put32(self._fsinfo, arch.FSI_NXT_FREE, self.next_free)
+        if self._fsinfo == self._fsinfo_on_card:
+            return
         await self.device.write_block(self.layout.partition_start + self.layout.fsinfo_sector,
                                       bytes(self._fsinfo))
+        self._fsinfo_on_card = bytes(self._fsinfo)
 
     # -- the root directory -----------------------------------------------------------------
 
