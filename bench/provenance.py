@@ -202,8 +202,8 @@ def sdram_bandwidth(report):
 
 # --- write_amplification.json -----------------------------------------------------------
 
-WA_SCHEMES = {"firmware": "the firmware's",
-              "fsinfo_on_allocation": "FSInfo only on allocation",
+WA_SCHEMES = {"firmware": "the firmware's (FSInfo on allocation)",
+              "fsinfo_every_sync": "FSInfo every sync",
               "whole_sectors_preallocated": "whole sectors, clusters preallocated"}
 
 

@@ -21,8 +21,9 @@ and close). Reported per cluster size:
   - a cluster is allocated in a fraction ``min(1, b/c)`` of the flushes, and then one FAT
     sector in each of the two FATs (and two more, once every 128 clusters, when the
     chain crosses a FAT sector, neglected);
-  - FSInfo: the firmware (sw/fat32.py) writes it every sync; a scheme writing it only
-    with an allocation saves one sector a flush.
+  - FSInfo: the firmware (sw/fat32.py) writes it only when its free count or next-free
+    hint changed, i.e. with an allocation; a scheme writing it every sync costs one sector
+    a flush more.
 
   So ``WA_floor = (b + s * (p + 1 + 2a + f)) / b`` with ``a = min(1, b/c)`` (:data:`FORMULA`),
   worked out for the firmware's scheme and two leaner ones (:data:`SCHEMES`); the flush
@@ -65,8 +66,8 @@ FORMULA = ("WA_floor = (b + s*(p + 1 + 2*a + f)) / b, a = min(1, b/c): b bytes a
            "s = 512 bytes a sector, c bytes a cluster; p = 1 the partial last sector "
            "written again (its mean over a uniform offset; 0 when only whole sectors are "
            "written), 1 the directory sector, 2*a one FAT sector in each FAT in the flushes "
-           "that allocate a cluster (0 with clusters allocated far ahead), f FSInfo (1 every "
-           "flush as the firmware does, a only on allocation, 0 only at close)")
+           "that allocate a cluster (0 with clusters allocated far ahead), f FSInfo (a only on "
+           "allocation as the firmware does, 1 every flush, 0 only at close)")
 
 
 class TracingCard(CardImage):
@@ -108,12 +109,12 @@ def region(layout, lba, directory):
 #: clusters of ``c`` bytes (``a = min(1, b/c)``: the share of flushes that allocate).
 SCHEMES = {
     # The firmware's (sw/storage.py, sw/fat32.py): the partial sector written again, the
-    # directory sector, FAT sectors on allocation, FSInfo every sync.
+    # directory sector, FAT sectors and FSInfo on allocation.
     "firmware": lambda b, c, a: {"data": b / SECTOR + 1, "directory": 1.0, "fat1": a,
-                                 "fat2": a, "fsinfo": 1.0},
-    # The same with FSInfo written only when a cluster was allocated.
-    "fsinfo_on_allocation": lambda b, c, a: {"data": b / SECTOR + 1, "directory": 1.0,
-                                             "fat1": a, "fat2": a, "fsinfo": a},
+                                 "fat2": a, "fsinfo": a},
+    # The same with FSInfo written at every sync (the firmware before 3ba4cb2).
+    "fsinfo_every_sync": lambda b, c, a: {"data": b / SECTOR + 1, "directory": 1.0,
+                                          "fat1": a, "fat2": a, "fsinfo": 1.0},
     # Only whole sectors each flush (the partial one stays in the ring, not yet durable),
     # clusters allocated far ahead (FAT amortised to nothing, a chain longer than the size
     # between syncs), FSInfo at close: the directory sector is all that is left.
@@ -187,13 +188,15 @@ def measure(seconds, cluster_bytes, work):
         cluster = int.from_bytes(entry, "little") & arch.FAT_ENTRY_MASK
     regions = [region(layout, lba, directory) for lba in card.lbas]
 
-    # Flush k's writes run from its start to the next flush's start; the last flush's end
-    # at its directory sector and FSInfo (the close's writes follow: directory, FSInfo,
-    # then the clean bit in each FAT).
+    # Flush k's writes run from its start to the next flush's start; the last flush ends at
+    # its directory sector (and FSInfo, when it allocated): the close's writes follow
+    # (directory, then the clean bit in each FAT).
     bounds = flush_starts + [len(regions)]
     flushes = [regions[a:b] for a, b in zip(bounds, bounds[1:])]
     last = flushes[-1]
-    end = last.index("fsinfo", last.index("directory")) + 1
+    end = last.index("directory") + 1
+    if end < len(last) and last[end] == "fsinfo":
+        end += 1
     flushes[-1], close = last[:end], last[end:]
     per_flush = {name: [f.count(name) for f in flushes] for name in REGIONS}
     flush_blocks = sum(len(f) for f in flushes)
