@@ -19,15 +19,18 @@ from .amaranth_tb import CLOCK_HZ, CLOCK_NS
 _PINS = ("cke", "cs_n", "ras_n", "cas_n", "we_n", "ba", "a", "dqm", "dq_oe")
 
 
-async def run_chip(dut, model):
-    """The chip model on the ``pins__*`` ports: it sees the values each edge samples."""
+async def run_chip(dut, model, *, prefix="pins__"):
+    """The chip model on the ``{prefix}*`` ports (``pins__`` on the controller's own Verilog,
+    ``sdram_`` on the logger's): it sees the values each edge samples."""
+    pins = [(name, getattr(dut, prefix + name)) for name in _PINS]
+    dq_o, dq_i = getattr(dut, prefix + "dq_o"), getattr(dut, prefix + "dq_i")
     while True:
         await ReadOnly()
-        levels = {name: int(getattr(dut, f"pins__{name}").value) for name in _PINS}
-        dq = int(dut.pins__dq_o.value)
+        levels = {name: int(pin.value) for name, pin in pins}
+        dq = int(dq_o.value)
         await RisingEdge(dut.clk)
         out = model.edge(**levels, dq=dq)
-        dut.pins__dq_i.value = 0 if out is None else out
+        dq_i.value = 0 if out is None else out
 
 
 @cocotb.test()
