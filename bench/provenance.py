@@ -122,6 +122,30 @@ def synth_sdram(report):
                                  "dma"])
 
 
+def synth_logger(report):
+    """The whole logger (flattened) and its split by block (not flattened)."""
+    by = {r["module"]: r for r in report["results"]}
+    logger = by["maglog_logger"]
+    device = report["device"]
+    lines = _synth_table(report, ["maglog_logger"])
+    blocks = [b for b in logger["blocks"] if b["lut4"] or b["ff"] or b["m9k"]]
+    total = {k: sum(b[k] for b in blocks) for k in ("lut4", "ff", "m9k")}
+    rows = [[f"`{b['block']}`", b["lut4"], b["ff"], b["m9k"],
+             pct(b["lut4"] / total["lut4"], 1)] for b in blocks]
+    rows.append(["all blocks (not flattened)", total["lut4"], total["ff"], total["m9k"],
+                 "100"])
+    lines += ["", *table(["block", "LUT4", "FF", "M9K", "% of the LUT4"], rows, "lrrrr")]
+    fits = logger["le_min"] <= device["les"]
+    lines += ["", f"The whole logger needs at least {thousands(logger['le_min'])} LEs (LUT4 "
+              f"alone), {pct(logger['le_min'] / device['les'], 0)} % of an {device['name']}'s "
+              f"{thousands(device['les'])}: it {'fits' if fits else 'does not fit'}. Flattened, "
+              f"Yosys optimises across blocks, so the flattened total "
+              f"({thousands(logger['lut4'])} LUT4) differs from the blocks' sum "
+              f"({thousands(total['lut4'])}). Yosys time: {logger['synth_seconds']:.0f} s "
+              f"flattened, {logger['blocks_seconds']:.0f} s by block."]
+    return lines
+
+
 # --- sim_throughput.json ----------------------------------------------------------------
 
 BACKEND_NAMES = {"amaranth": "Amaranth simulator", "icarus": "cocotb + Icarus",
@@ -567,6 +591,7 @@ BLOCKS = {
     "synth-frontend": ("bench/results/synth.json", synth_frontend),
     "synth-sd": ("bench/results/synth.json", synth_sd),
     "synth-sdram": ("bench/results/synth.json", synth_sdram),
+    "synth-logger": ("bench/results/synth.json", synth_logger),
     "sim-throughput": ("bench/results/sim_throughput.json", sim_throughput),
     "sim-throughput-div27": ("bench/results/sim_throughput_div27.json", sim_throughput),
     "sdio-throughput": ("bench/results/sdio_throughput.json", sdio_throughput),
