@@ -348,33 +348,39 @@ class SdCardDriver:
             await self.bus.wait(RECOVER_POLL_S)
 
     async def _pre_erase(self, count):
-        """ACMD23 before a CMD25 of ``count`` blocks, unless the card refused it before. A
-        card without ACMD23 takes it for CMD23, illegal to it as well: no response, and
-        ILLEGAL_COMMAND in the next status (PLSS §4.3.9.1, §4.10.1 condition B); CMD13 then
-        tells that apart from a command lost to a CRC error (COM_CRC_ERROR), which is
-        tried once more. ACMD23 only speeds writing up: without it the write is the same."""
+        """ACMD23 before a CMD25 of ``count`` blocks, unless the card refused it before;
+        returns True when the card took it for CMD23 (SET_BLOCK_COUNT): that CMD25 then ends
+        by itself and gets no CMD12.
+
+        A card that does not define ACMD23 treats it as the regular CMD23 (PLSS §4.3.9.1):
+        with CMD23 it answers an R1 with APP_CMD clear (item 4) and has set the block count
+        (to ``count``: the write is the same); without it the command is illegal, no response
+        and ILLEGAL_COMMAND in the next status (§4.10.1, condition B), which CMD13 tells apart
+        from a command lost to a CRC error (COM_CRC_ERROR, tried once more). Either way ACMD23
+        is not sent to this card again: it only speeds writing up."""
         if self.pre_erase_supported is False:
-            return
+            return False
         for attempt in range(2):
             try:
-                await self.app_command(arch.AppCommand.SET_WR_BLK_ERASE_COUNT, count,
-                                       arch.Response.R1)
+                status = await self.app_command(arch.AppCommand.SET_WR_BLK_ERASE_COUNT, count,
+                                                arch.Response.R1)
             except SdTimeout:
                 status = arch.CardStatus(await self.card_status())
                 if arch.CardStatus.ILLEGAL_COMMAND in status:
                     self.pre_erase_supported = False
-                    return
+                    return False
                 self.retries += 1
                 continue
-            self.pre_erase_supported = True
-            return
+            self.pre_erase_supported = bool(status & arch.CardStatus.APP_CMD)
+            return not self.pre_erase_supported
         raise SdTimeout("ACMD23 got no response twice, and the card does not call it illegal")
 
     async def _write_run(self, lba, first, count, source, pre_erase):
         regs = self.regs
         multi = count > 1
+        counted = False
         if multi and pre_erase:
-            await self._pre_erase(count)
+            counted = await self._pre_erase(count)
         await self.bus.write(regs["blocks"].address, count)
         await source.arm(first, count)
         index = arch.Command.WRITE_MULTIPLE_BLOCK if multi else arch.Command.WRITE_BLOCK
@@ -390,9 +396,9 @@ class SdCardDriver:
         status = await self._wait_dat(f"writing from block {lba}")
         accepted = await self.bus.read(regs["accepted"].address)
         failed = {k: v for k, v in status.items() if k.startswith("write.") and v}
-        if multi or failed:
-            # CMD12 ends a multi-block write, and any write that went wrong (the card may
-            # still be in rcv).
+        if (multi and not counted) or failed:
+            # CMD12 ends a multi-block write (unless CMD23 set its length), and any write
+            # that went wrong (the card may still be in rcv).
             await self._stop_quietly()
         if failed:
             await source.cancel()

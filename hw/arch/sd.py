@@ -119,6 +119,7 @@ class Command(_enum.IntEnum):
     SET_BLOCKLEN         = 16   # ac,  R1
     READ_SINGLE_BLOCK    = 17   # adtc, R1
     READ_MULTIPLE_BLOCK  = 18   # adtc, R1
+    SET_BLOCK_COUNT      = 23   # ac,  R1 (optional: SCR CMD_SUPPORT bit 33)
     WRITE_BLOCK          = 24   # adtc, R1
     WRITE_MULTIPLE_BLOCK = 25   # adtc, R1
     APP_CMD              = 55   # ac,  R1

@@ -32,11 +32,14 @@ What the card does (PLSS chapter 4):
   default, PLSS Table 4-22 CMD16) or ADDRESS_ERROR (no transfer, PLSS §4.3.3). With
   ``version=1`` the card is a Ver1.X card: CMD8 is an illegal command to it (no response,
   ILLEGAL_COMMAND next), and the host must send ACMD41 with HCS = 0 (PLSS §4.2.3.1).
-* ``acmd23=False``: a card that does not implement ACMD23 (SET_WR_BLK_ERASE_COUNT). PLSS
-  §4.3.9.1: an ACMD the card does not define is taken as the standard command of that
-  index; CMD23 (SET_BLOCK_COUNT) is optional and this card has none, so the command is
-  illegal: no response, and ILLEGAL_COMMAND in the next response (§4.10.1, condition B).
-  Commands a card of this configuration lacks are logged, not reported as host errors.
+* ``acmd23=False``: a card that does not define ACMD23 (SET_WR_BLK_ERASE_COUNT; mandatory
+  in the PLSS, so this is a card outside it). PLSS §4.3.9.1: an ACMD the card does not
+  define is taken as the regular command of that index, here CMD23 (SET_BLOCK_COUNT,
+  optional). Without CMD23 (``cmd23=False``) that is illegal: no response, ILLEGAL_COMMAND in
+  the next response (§4.10.1, condition B); a command this card lacks is logged, not
+  reported as a host error. With ``cmd23=True`` it sets the block count of the next CMD25,
+  answered by an R1 with APP_CMD clear (§4.3.9.1 item 4); that CMD25 ends by itself after
+  so many blocks (no CMD12, which would be illegal in tran).
 * Transfer: CMD7 (select R1b / deselect), CMD9/CMD10 (R2 CSD/CID), CMD13 (R1), CMD16, CMD17
   and CMD18 (reads), CMD24 and CMD25 (writes, ended by CMD12), CMD12 (R1b), CMD15, ACMD6
   (bus width), ACMD13 (SD status), ACMD22 (well-written blocks), ACMD23 (pre-erase count),
@@ -242,7 +245,9 @@ class SdCard:
         2: the card answers CMD8 (physical layer 2.00 or later). 1: a Ver1.X card (SDSC
         only), to which CMD8 is an illegal command.
     acmd23 : bool
-        False: ACMD23 is an illegal command to this card (see the module documentation).
+        False: this card does not define ACMD23 (see the module documentation).
+    cmd23 : bool
+        The card supports CMD23 (SET_BLOCK_COUNT) for CMD25 (SCR CMD_SUPPORT bit 33).
     busy_start_delay : int
         Clocks the card leaves DAT0 released after a CRC status token's end bit (and after
         the end bit of CMD12's R1b) before it holds DAT0 low for busy; 0 = at once, as the
@@ -252,7 +257,7 @@ class SdCard:
     def __init__(self, image: CardImage, *, seed=0, capacity_blocks=None, busy_clocks=(8, 64),
                  faults: Faults | None = None, rca=None, n_cr=arch.N_CR_MIN, n_ac=None,
                  acmd41_busy=(1, 4), high_capacity=True, version=2, acmd23=True,
-                 busy_start_delay=0):
+                 cmd23=False, busy_start_delay=0):
         if not isinstance(image, CardImage):
             raise TypeError(f"Image must be a CardImage, not {image!r}")
         if capacity_blocks is None:
@@ -290,6 +295,7 @@ class SdCard:
         self.high_capacity = bool(high_capacity)
         self.version = version
         self.acmd23 = bool(acmd23)
+        self.cmd23 = bool(cmd23)
         self.busy_start_delay = busy_start_delay
         if not self.high_capacity:
             self._csd_v1 = _csd_v1_fields(capacity_blocks)
@@ -345,6 +351,8 @@ class SdCard:
         self.ocr_ready = False
         #: Pre-erase count set by ACMD23 for the next CMD25 (None: not set).
         self.pre_erase_count: int | None = None
+        #: Block count set by CMD23 for the next CMD25 (None: not set, CMD12 ends it).
+        self.block_count: int | None = None
         #: SDSC: block length of reads and writes, 512 after power-up and CMD0 (PLSS Table
         #: 4-22, CMD16: "Default block length is fixed to 512 Bytes").
         self.block_length = arch.BLOCK_BYTES
@@ -453,7 +461,8 @@ class SdCard:
         index = _value(bits[2:8])
         argument = _value(bits[8:40])
         app, self._app = self._app, False
-        is_acmd = app and index in _ACMD_INDICES
+        is_acmd = app and index in _ACMD_INDICES and not (
+            index == AppCommand.SET_WR_BLK_ERASE_COUNT and not self.acmd23)
         name = f"{'ACMD' if is_acmd else 'CMD'}{index}"
 
         def ignore(note):
@@ -662,10 +671,23 @@ class SdCard:
             if multi and self.pre_erase_count is not None:
                 note += f", pre-erase count {self.pre_erase_count}"
                 self.pre_erase_count = None        # ACMD23 applies to the next CMD25 only
+            count = None
+            if multi and self.block_count is not None:
+                count, self.block_count = self.block_count, None
+                note += f", block count {count}"
             self._well_written = 0
             ready = self._response_end + arch.N_WR + 1
-            self._start_op(self._op_receive(argument, multi, ready), CardState.RCV)
+            self._start_op(self._op_receive(argument, multi, ready, count), CardState.RCV)
             return _Reply(Response.R1, note=note)
+
+        if index == Command.SET_BLOCK_COUNT:
+            if not self.cmd23:
+                if app:     # meant as ACMD23, which this card does not define either
+                    raise _Unsupported("this card has neither ACMD23 nor CMD23")
+                raise _Illegal("this card has no CMD23 (SCR CMD_SUPPORT)")
+            self._require(CardState.TRAN)
+            self.block_count = argument & 0xFFFF
+            return _Reply(Response.R1, note=f"block count {self.block_count}")
 
         if index == Command.APP_CMD:
             self._require(CardState.IDLE, *_ADDRESSED_STATES)
@@ -738,9 +760,6 @@ class SdCard:
                 return _Reply(Response.R1, CardStatus.ERROR, "reserved width")
             return _Reply(Response.R1, note=f"{self.bus_width}-bit bus")
         if index == AppCommand.SET_WR_BLK_ERASE_COUNT:
-            if not self.acmd23:
-                # Taken as CMD23 (PLSS §4.3.9.1), which this card does not have either.
-                raise _Unsupported("this card has neither ACMD23 nor CMD23")
             self.pre_erase_count = argument & arch.PRE_ERASE_COUNT_MASK
             return _Reply(Response.R1, note=f"pre-erase count {self.pre_erase_count}")
         if index == AppCommand.SET_CLR_CARD_DETECT:
@@ -854,7 +873,7 @@ class SdCard:
         spec, spec3 = (2, 1) if self.version == 2 else (0, 0)
         security = 3 if self.high_capacity else 2
         value = ((0 << 60) | (spec << 56) | (0 << 55) | (security << 52) | (0b0101 << 48)
-                 | (spec3 << 47))
+                 | (spec3 << 47) | (int(self.cmd23) << 33))
         return value.to_bytes(8, "big")
 
     def _make_sd_status(self) -> bytes:
@@ -959,11 +978,12 @@ class SdCard:
         if self.state is CardState.DATA:
             self.state = CardState.TRAN
 
-    def _op_receive(self, lba: int, multi: bool, ready: int):
+    def _op_receive(self, lba: int, multi: bool, ready: int, count: int | None = None):
         """Write data (CMD24, CMD25): receive blocks, answer each with a CRC status token and
         a busy, store accepted blocks; end after one block (CMD24) or at CMD12 (CMD25).
 
-        ``ready`` is the first edge at which a start bit respects N_WR.
+        ``ready`` is the first edge at which a start bit respects N_WR; ``count`` (CMD23)
+        ends a CMD25 after so many blocks are stored.
         """
         now, dat = yield
         ignoring = False          # after a rejected block of a CMD25: wait for CMD12
@@ -1043,7 +1063,8 @@ class SdCard:
             self._well_written += 1
             self._busy = False
             self.log.append(BlockEvent(now, "write", lba, "stored"))
-            done = not multi or self._stop_at is not None
+            done = (not multi or self._stop_at is not None
+                    or (count is not None and self._well_written == count))
             if done:
                 self._end_programming()
             now, dat = yield _DAT0, _ALL_LINES

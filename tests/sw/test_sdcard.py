@@ -104,13 +104,30 @@ def test_card_without_acmd23_gets_its_multi_block_writes():
     assert driver.pre_erase_supported is False
     log = commands(card)
     names = [t.command for t in log]
-    # Tried once (no response: an illegal command), told apart by CMD13, never again.
-    assert names.count("ACMD23") == 1
-    tried = names.index("ACMD23")
-    assert log[tried].response is Response.NONE
+    # Tried once: CMD55 then 23, taken by the card as CMD23, which it lacks too (no
+    # response: an illegal command); told apart by CMD13, never sent again.
+    tried = names.index("CMD23")
+    assert names.count("CMD23") == 1 and "ACMD23" not in names
+    assert names[tried - 1] == "CMD55" and log[tried].response is Response.NONE
     assert names[tried + 1] == "CMD13" and log[tried + 1].value & CardStatus.ILLEGAL_COMMAND
-    assert names.count("CMD25") == 2
+    assert names.count("CMD25") == names.count("CMD12") == 2
     assert all("pre-erase" not in t.note for t in log if t.command == "CMD25")
+
+
+def test_card_that_takes_acmd23_for_cmd23():
+    """A card without ACMD23 but with CMD23: the R1 has APP_CMD clear and the block count is
+    set, so that CMD25 ends by itself (no CMD12, illegal in tran)."""
+    card = new_card(5, acmd23=False, cmd23=True)
+    driver, _ = write_and_read_back(card, [(100, 3), (200, 2)], seed=5)
+    assert driver.pre_erase_supported is False
+    log = commands(card)
+    names = [t.command for t in log]
+    tried = names.index("CMD23")
+    assert names.count("CMD23") == 1 and names[tried - 1] == "CMD55"
+    assert not log[tried].value & CardStatus.APP_CMD
+    first, second = [k for k, name in enumerate(names) if name == "CMD25"]
+    assert log[first].note == "LBA 100, block count 3"
+    assert "CMD12" not in names[first:second] and names[second:].count("CMD12") == 1
 
 
 @pytest.mark.parametrize("delay", sorted({0, 1, 2, 3, 5, arch.BUSY_START_CLOCKS}))

@@ -834,7 +834,7 @@ def test_version_1_card_reports_hcs():
 def test_card_without_acmd23():
     card, host, image = ready_card(acmd23=False)
     assert host.acmd(23, 4) is None                       # taken as CMD23: illegal
-    assert card.pre_erase_count is None
+    assert card.pre_erase_count is None and card.block_count is None
     assert host.cmd(13, card.rca << 16).has(CardStatus.ILLEGAL_COMMAND)
     assert not host.cmd(13, card.rca << 16).has(CardStatus.ILLEGAL_COMMAND)
     blocks = [random_block(40 + k) for k in range(2)]
@@ -844,6 +844,28 @@ def test_card_without_acmd23():
     host.wait_busy()
     assert [image.read_block(50 + k) for k in range(2)] == blocks
     assert card.errors == []          # a host may try ACMD23: not a protocol violation
+    assert [t.command for t in card.log if isinstance(t, Transaction)].count("ACMD23") == 0
+    # A plain CMD23 to a card without it is the host's mistake.
+    assert host.cmd(23, 2) is None
+    assert len(card.errors) == 1 and "no CMD23" in card.errors[0]
+
+
+def test_card_with_cmd23_instead_of_acmd23():
+    card, host, image = ready_card(acmd23=False, cmd23=True)
+    host.cmd(55, card.rca << 16)
+    r1 = host.cmd(23, 2)                                  # after CMD55: ACMD23 → CMD23
+    assert r1 is not None and not r1.has(CardStatus.APP_CMD)
+    assert card.block_count == 2 and card.pre_erase_count is None
+    blocks = [random_block(50 + k) for k in range(2)]
+    host.cmd(25, 70, then=0)
+    assert [host.write_block(b)[0] for b in blocks] == [arch.TOKEN_ACCEPTED] * 2
+    host.idle(arch.N_RC)
+    assert card.state is CardState.TRAN                   # ended by itself after 2 blocks
+    assert [image.read_block(70 + k) for k in range(2)] == blocks
+    host.acmd(51, then=0)                                 # SCR: CMD_SUPPORT bit 33 set
+    scr, ok, _ = host.read_data(8)
+    assert ok and int.from_bytes(scr, "big") >> 33 & 1
+    assert card.errors == []
 
 
 @pytest.mark.parametrize("delay", [0, 3, arch.BUSY_START_CLOCKS])
