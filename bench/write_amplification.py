@@ -45,7 +45,7 @@ from _machine import load, packages, write_report
 
 from maglog.calib.card import read_logs
 from maglog.hw.arch import fat32 as arch
-from maglog.sim.models.card_image import CardImage
+from maglog.sim.models.card_image import TracingImage
 from maglog.sim.models.logger import LoggerModel
 from maglog.sim.scenario import make_flight
 from maglog.sim.system import flight_scenario
@@ -68,18 +68,6 @@ FORMULA = ("WA_floor = (b + s*(p + 1 + 2*a + f)) / b, a = min(1, b/c): b bytes a
            "written), 1 the directory sector, 2*a one FAT sector in each FAT in the flushes "
            "that allocate a cluster (0 with clusters allocated far ahead), f FSInfo (a only on "
            "allocation as the firmware does, 1 every flush, 0 only at close)")
-
-
-class TracingCard(CardImage):
-    """A card image that keeps the LBA of every block stored, in order."""
-
-    def __init__(self, capacity_blocks):
-        super().__init__(capacity_blocks)
-        self.lbas = []
-
-    def write_block(self, lba, data):
-        super().write_block(lba, data)
-        self.lbas.append(lba)
 
 
 def layout_of(path):
@@ -145,7 +133,7 @@ def measure(seconds, cluster_bytes, work):
     blank = work / f"blank-{cluster_bytes}.img"
     format_image(blank, CARD_BYTES, cluster_bytes=cluster_bytes, volume_id=0x4D474C47)
     layout = layout_of(blank)
-    card = TracingCard.load(blank)
+    card = TracingImage.load(blank)
     model = LoggerModel(card, clk_freq=scenario.clk_freq, channels=scenario.channels,
                         max_frame=scenario.max_frame, debounce_s=scenario.debounce_s)
     for burst in scenario.bursts:

@@ -10,8 +10,10 @@ from pathlib import Path
 
 from amaranth.sim import Simulator
 
+from ..sw.bus import RegisterBus
 
-__all__ = ["CLOCK_HZ", "CLOCK_PERIOD", "CLOCK_NS", "run_simulation", "drive_line", "feed_stream", "FrameAssembler",
+
+__all__ = ["CLOCK_HZ", "CLOCK_PERIOD", "CLOCK_NS", "ClockedBus", "run_simulation", "drive_line", "feed_stream", "FrameAssembler",
            "collect_frames", "collect_payloads"]
 
 #: The simulated system clock of every backend (Amaranth simulator and cocotb): 50 MHz, as
@@ -58,6 +60,24 @@ def run_simulation(dut, testbenches, *, background=(), name="sim", vcd_dir=None,
         writer = contextlib.nullcontext()
     with writer:
         sim.run()
+
+
+class ClockedBus(RegisterBus):
+    """A register bus on the Amaranth simulator that keeps time in clock cycles: a
+    subclass's accesses add the cycles they take to ``_cycles``; :meth:`wait` jumps (one
+    delay, then back onto a clock edge) and :meth:`now` is the cycles times the period."""
+    def __init__(self, ctx, *, clock_period):
+        self._ctx, self._period = ctx, clock_period
+        self._cycles = 0
+
+    async def wait(self, seconds):
+        cycles = max(1, round(seconds / self._period))
+        await self._ctx.delay((cycles - 1) * self._period)
+        await self._ctx.tick()
+        self._cycles += cycles
+
+    def now(self):
+        return self._cycles * self._period
 
 
 async def drive_line(ctx, line, segments):

@@ -1,20 +1,20 @@
 """Amaranth-simulator backends for the SD path: the firmware's register bus and block port
 on an :class:`~maglog.hw.sdio.host.SdioHost`, and the SD card model on its pins."""
 
-from ..sw.bus import BlockPort, RegisterBus
+from ..sw.bus import BlockPort
 from .models.sdcard import SdBus
-from .amaranth_tb import CLOCK_PERIOD, collect_payloads, run_simulation
+from .amaranth_tb import CLOCK_PERIOD, ClockedBus, collect_payloads, run_simulation
 
 
 __all__ = ["CsrBus", "StreamBlockPort", "run_card", "run_driver"]
 
 
-class CsrBus(RegisterBus):
+class CsrBus(ClockedBus):
     """Register access through a CSR bus (one 32-bit word per address); ``clock_period`` is
     the simulation's (see :func:`~maglog.sim.amaranth_tb.run_simulation`)."""
     def __init__(self, ctx, bus, *, clock_period=CLOCK_PERIOD):
-        self._ctx, self._bus, self._period = ctx, bus, clock_period
-        self._cycles = 0
+        super().__init__(ctx, clock_period=clock_period)
+        self._bus = bus
 
     async def read(self, address):
         ctx, bus = self._ctx, self._bus
@@ -37,16 +37,6 @@ class CsrBus(RegisterBus):
         # firmware does next (read a status, say) sees the write's effect.
         await ctx.tick()
         self._cycles += 2
-
-    async def wait(self, seconds):
-        cycles = max(1, round(seconds / self._period))
-        # One delay instead of a tick per cycle, then back onto a clock edge.
-        await self._ctx.delay((cycles - 1) * self._period)
-        await self._ctx.tick()
-        self._cycles += cycles
-
-    def now(self):
-        return self._cycles * self._period
 
 
 class StreamBlockPort(BlockPort):

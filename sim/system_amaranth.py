@@ -11,8 +11,7 @@ import time
 
 from ..hw.arch.sdram import MT48LC4M32B2
 from ..hw.top import Logger
-from ..sw.bus import RegisterBus
-from .amaranth_tb import run_simulation
+from .amaranth_tb import ClockedBus, run_simulation
 from .models.sdcard import SdCard
 from .models.sdram import SdramChip
 from .sdio_amaranth import run_card
@@ -23,7 +22,7 @@ from .system import SystemResult
 __all__ = ["WishboneBus", "run_system"]
 
 
-class WishboneBus(RegisterBus):
+class WishboneBus(ClockedBus):
     """The firmware's register bus on a Wishbone (classic, 32-bit, word-addressed) slave:
     one cycle with ``cyc`` and ``stb`` held until ``ack``; ``clock_period`` is the
     simulation's."""
@@ -32,8 +31,8 @@ class WishboneBus(RegisterBus):
     ACK_LIMIT = 64
 
     def __init__(self, ctx, wb, *, clock_period):
-        self._ctx, self._wb, self._period = ctx, wb, clock_period
-        self._cycles = 0
+        super().__init__(ctx, clock_period=clock_period)
+        self._wb = wb
         self._sel = (1 << len(wb.sel)) - 1
 
     async def _cycle(self, address, write, value=0):
@@ -67,15 +66,6 @@ class WishboneBus(RegisterBus):
         # acknowledgement: what the firmware does next sees the write's effect.
         await self._ctx.tick()
         self._cycles += 1
-
-    async def wait(self, seconds):
-        cycles = max(1, round(seconds / self._period))
-        await self._ctx.delay((cycles - 1) * self._period)
-        await self._ctx.tick()
-        self._cycles += cycles
-
-    def now(self):
-        return self._cycles * self._period
 
 
 def run_system(scenario, firmware, image, *, chip=MT48LC4M32B2, card_seed=0,

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from maglog.hw.arch.sd import BLOCK_BYTES
 
-__all__ = ["CardImage", "BLOCK_BYTES"]
+__all__ = ["CardImage", "TracingImage", "BLOCK_BYTES"]
 
 _ZERO_BLOCK = bytes(BLOCK_BYTES)
 #: Bytes read at a time by :meth:`CardImage.load`.
@@ -148,3 +148,21 @@ def _data_extents(f, size: int) -> Iterator[tuple[int, int]]:
             return                              # ENXIO: no data after offset
         yield start, min(end, size)
         offset = end
+
+
+class TracingImage(CardImage):
+    """A :class:`CardImage` that also keeps every block stored, in order, as ``(lba,
+    data)`` in :attr:`writes` (for power-cut campaigns and write counts)."""
+
+    def __init__(self, capacity_blocks: int):
+        super().__init__(capacity_blocks)
+        self.writes: list[tuple[int, bytes]] = []
+
+    def write_block(self, lba: int, data) -> None:
+        super().write_block(lba, data)
+        self.writes.append((lba, bytes(data)))
+
+    @property
+    def lbas(self) -> list[int]:
+        """The LBA of every block stored, in order."""
+        return [lba for lba, _ in self.writes]

@@ -35,7 +35,7 @@ import pytest
 from maglog.calib.card import CardError, read_logs
 from maglog.hw.arch import fat32 as arch
 from maglog.sim import sentences
-from maglog.sim.models.card_image import CardImage
+from maglog.sim.models.card_image import TracingImage
 from maglog.sim.models.logger import LoggerModel
 from maglog.sim.system import SystemScenario, _Timeline, short_scenario
 from maglog.sw import fat32
@@ -164,18 +164,6 @@ def _run(coroutine):
     raise RuntimeError("the host-side FAT32 writer awaited something")
 
 
-class TracingCard(CardImage):
-    """A card image that keeps every block stored, in order, as ``(lba, data)``."""
-
-    def __init__(self, capacity_blocks):
-        super().__init__(capacity_blocks)
-        self.writes = []
-
-    def write_block(self, lba, data):
-        super().write_block(lba, data)
-        self.writes.append((lba, bytes(data)))
-
-
 @dataclass(frozen=True)
 class Layout:
     """Where the regions of the card's FAT32 volume lie (LBAs)."""
@@ -280,7 +268,7 @@ def model_of(scenario, card):
 
 
 def record(scenario, card, *, cut=None, marks=None):
-    """Run the recording on ``card`` (a :class:`TracingCard`), cut after ``cut`` blocks if
+    """Run the recording on ``card`` (a :class:`TracingImage`), cut after ``cut`` blocks if
     given; returns ``(RunResult, apps)``. ``marks`` (a list) gets ``("flush", blocks
     stored so far)`` at the start of every flush (the firmware's fault hook)."""
     model = model_of(scenario, card)
@@ -320,7 +308,7 @@ def make_reference(tmp_path, *, sync=None):
     replaces :meth:`LogFile.sync` for the recording (not for the blank card's files)."""
     scenario = campaign_scenario()
     blank = blank_card(tmp_path / "blank.img")
-    card = TracingCard.load(blank)
+    card = TracingImage.load(blank)
     marks = []
     with pytest.MonkeyPatch.context() as patch:
         # Phases: wrap the FAT32 writer's create, root growth and close (the flushes are
@@ -419,7 +407,7 @@ def frame_prefix(data, frames):
 def cut_verdict(reference, cut, tmp_path, tools):
     """Cut the recording after block ``cut`` and judge the card: ``(problems, fsck kinds)``
     (no problems: the card is as the module's docstring requires)."""
-    card = TracingCard.load(reference.blank)
+    card = TracingImage.load(reference.blank)
     with pytest.MonkeyPatch.context() as patch:
         if reference.sync is not None:
             patch.setattr(fat32.LogFile, "sync", reference.sync)
