@@ -127,6 +127,8 @@ TOPLEVEL = "maglog_system"
 RESET_CYCLES = 4
 #: The SDRAM pins packed into the one output ``sim_sdram`` (first = least significant).
 SDRAM_PACKED = ("cke", "cs_n", "ras_n", "cas_n", "we_n", "dq_oe", "ba", "a", "dqm", "dq_o")
+#: The SD host's outputs packed into ``sim_sd`` (first = least significant).
+SD_PACKED = ("cmd_oe", "cmd_o", "dat_oe", "dat_o")
 
 _PORT = re.compile(r"^\s*(input|output)\s+(?:\[(\d+):0\]\s+)?(\w+)\s*;", re.MULTILINE)
 
@@ -134,9 +136,10 @@ _PORT = re.compile(r"^\s*(input|output)\s+(?:\[(\d+):0\]\s+)?(\w+)\s*;", re.MULT
 def system_verilog(logger_verilog):
     """The logger's Verilog (module ``maglog_logger``) and a wrapper module ``maglog_system``
     for the test: the logger's ports but ``rst``, which a power-on reset holds high for the
-    first :data:`RESET_CYCLES` clocks, and two outputs more: ``sim_sdram``, the SDRAM pins of
-    :data:`SDRAM_PACKED` in one vector (one read a clock instead of ten), and
-    ``sim_sdram_command``, high unless the SDRAM bus holds a NOP (one signal to wake on).
+    first :data:`RESET_CYCLES` clocks, and three outputs more: ``sim_sdram`` and ``sim_sd``,
+    the SDRAM pins of :data:`SDRAM_PACKED` and the SD host's outputs of :data:`SD_PACKED`
+    each in one vector (one read an edge instead of ten or four), and ``sim_sdram_command``,
+    high unless the SDRAM bus holds a NOP (one signal to wake on).
 
     Why the reset is inside: every next-state expression of Amaranth's Verilog depends on
     ``rst``; were it a top-level input, Verilator would evaluate all of them again whenever
@@ -149,20 +152,22 @@ def system_verilog(logger_verilog):
     ports = [(flow, 1 + int(high) if high else 1, name)
              for flow, high, name in _PORT.findall(body)]
     width = {name: bits for _, bits, name in ports}
-    missing = [name for name in ("clk", "rst", *(f"sdram_{pin}" for pin in SDRAM_PACKED))
+    packs = {"sim_sdram": [f"sdram_{pin}" for pin in SDRAM_PACKED],
+             "sim_sd": [f"sd_{pin}" for pin in SD_PACKED]}
+    missing = [name for name in ("clk", "rst", *packs["sim_sdram"], *packs["sim_sd"])
                if name not in width]
     if missing:
         raise ValueError(f"module {TOPLEVEL_NAME} has no port {', '.join(missing)}")
-    packed = sum(width[f"sdram_{pin}"] for pin in SDRAM_PACKED)
-    ports += [("output", packed, "sim_sdram"), ("output", 1, "sim_sdram_command")]
+    logger_ports = [name for _, _, name in ports]
+    ports += [("output", sum(width[name] for name in pins), pack)
+              for pack, pins in packs.items()]
+    ports.append(("output", 1, "sim_sdram_command"))
 
     def declaration(flow, bits, name):
         vector = f"[{bits - 1}:0] " if bits > 1 else ""
         return f"  {flow} {vector}{name} /*verilator public_flat_rw*/;"
 
-    concatenation = ", ".join(f"sdram_{pin}" for pin in reversed(SDRAM_PACKED))
 
-    logger_ports = [name for _, _, name in ports[:-2]]
     outer = [port for port in ports if port[2] != "rst"]
     bits = max(2, RESET_CYCLES.bit_length())
     lines = [f"module {TOPLEVEL}({', '.join(name for _, _, name in outer)});"]
@@ -170,7 +175,8 @@ def system_verilog(logger_verilog):
     lines += [f"  reg [{bits - 1}:0] por_count = {bits}'d0;",
               f"  wire rst = por_count != {bits}'d{RESET_CYCLES};",
               "  always @(posedge clk) if (rst) por_count <= por_count + 1'b1;",
-              f"  assign sim_sdram = {{{concatenation}}};",
+              *(f"  assign {pack} = {{{', '.join(reversed(pins))}}};"
+                for pack, pins in packs.items()),
               "  assign sim_sdram_command = !(sdram_cke && !sdram_dq_oe && (sdram_cs_n"
               " || sdram_ras_n && sdram_cas_n && sdram_we_n));",
               f"  {TOPLEVEL_NAME} logger (",
@@ -429,22 +435,26 @@ async def run_card(dut, card):
     drives after the falling edge; a line driven by both sides is a protocol error."""
     from cocotb.triggers import FallingEdge, ReadOnly, RisingEdge
     rising, falling, read_only = RisingEdge(dut.sd_clk), FallingEdge(dut.sd_clk), ReadOnly()
+    packed, cmd_i, dat_i = dut.sim_sd, dut.sd_cmd_i, dut.sd_dat_i
     card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
+    driven = (1, 0xF)                   # released lines (pulled up), as the test starts
     while True:
         await rising
         await read_only
-        host_cmd_oe, host_dat_oe = int(dut.sd_cmd_oe.value), int(dut.sd_dat_oe.value)
+        word = int(packed.value)        # SD_PACKED: cmd_oe, cmd_o, dat_oe, dat_o[3:0]
+        host_cmd_oe, host_dat_oe = word & 1, word >> 2 & 1
         if host_cmd_oe and card_cmd_oe:
             card.report("bus contention on CMD")
         if host_dat_oe and card_dat_oe:
             card.report("bus contention on DAT")
-        cmd = int(dut.sd_cmd_o.value) if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
+        cmd = word >> 1 & 1 if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
         released = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
-        dat = int(dut.sd_dat_o.value) if host_dat_oe else released
+        dat = word >> 3 & 0xF if host_dat_oe else released
         card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
         await falling
-        dut.sd_cmd_i.value = card_cmd if card_cmd_oe else 1
-        dut.sd_dat_i.value = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
+        levels = (card_cmd if card_cmd_oe else 1, (card_dat & card_dat_oe) | (0xF & ~card_dat_oe))
+        if levels != driven:
+            cmd_i.value, dat_i.value = driven = levels
 
 
 async def _drive_pins(dut, changes, period_ps):
@@ -552,7 +562,7 @@ async def system(dut):
             await firmware(bus, logger.csr_memory_map, clk_freq)
             returned.append(bus.now())
         except Exception:
-            failure.append(traceback.format_exc(limit=-4))
+            failure.append(f"at {bus.now():.6f} s: {traceback.format_exc()}")
     cocotb.start_soon(software())
 
     await Timer(round(scenario.until * clk_freq) * period_ps, unit="ps")
