@@ -13,7 +13,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-from maglog.hw.arch.sd import BLOCK_BYTES
+from ...hw.arch.sd import BLOCK_BYTES
 
 __all__ = ["CardImage", "TracingImage", "BLOCK_BYTES"]
 

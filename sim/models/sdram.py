@@ -89,7 +89,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from maglog.hw.arch.sdram import A10, BurstLength, Chip, Command
+from ...hw.arch.sdram import A10, BurstLength, Chip, Command
 
 __all__ = ["SdramChip", "SdramTimingError", "ClockTiming", "decode_mode_register"]
 
