@@ -62,3 +62,15 @@ def test_amaranth_gives_the_models_card(blank, model_card):
     result = run_system(short_scenario(), firmware, image)
     assert result.sdram_errors == [] and result.card_errors == []
     assert differing_blocks(image, model_card) == []
+
+
+@pytest.mark.slow
+@pytest.mark.cocotb
+def test_verilator_gives_the_models_card(blank, model_card, external, tmp_path):
+    from maglog.sim.system_cocotb import run_system_cocotb
+    external.simulator("verilator")
+    image = CardImage.load(blank)
+    result = run_system_cocotb(short_scenario(), image, backend="verilator",
+                               build_dir=tmp_path / "build", settings=AppSettings(**SETTINGS))
+    assert result.sdram_errors == [] and result.card_errors == []
+    assert differing_blocks(image, model_card) == []
