@@ -28,7 +28,8 @@ from .reference import Kind, reference_filter
 from .uart_line import encode
 
 
-__all__ = ["Burst", "SystemScenario", "SystemResult", "flight_scenario", "FLIGHT_CHANNELS", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
+__all__ = ["Burst", "SystemScenario", "SystemResult", "Timeline", "flight_scenario",
+           "FLIGHT_CHANNELS", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
 
 #: Bit times of one 8N1 character on the line: start, 8 data, stop.
 UART_FRAME_BITS = 10
@@ -223,7 +224,7 @@ class SystemResult:
     card_errors: list = field(default_factory=list)
 
 
-class _Timeline:
+class Timeline:
     """Places frames on their lines so that no two end closer than :data:`MIN_END_GAP_S`
     (a frame is moved later until it fits, never earlier)."""
     def __init__(self, channels):
@@ -261,7 +262,7 @@ def flight_scenario(flight, *, clk_freq=50e6, lead_s=2.0, tail_s=1.0, mag_rate=2
     kinds = {b"$PMAG1": 0, b"$ ": 2, b"$1": 2}
     rate = {0: 1 / mag_rate, 2: 1 / cesium_rate}
     counts = {0: 0, 1: 0, 2: 0}
-    line = _Timeline(FLIGHT_CHANNELS)
+    line = Timeline(FLIGHT_CHANNELS)
     gps_second = None
     end = 0.0
     for frame in log.splitlines(keepends=True):
@@ -299,7 +300,7 @@ def short_scenario(seed=0):
     when = _dt.datetime(2026, 11, 24, 12, 0, 0, tzinfo=_dt.timezone.utc)
     seconds_of_day = when.hour * 3600 + when.minute * 60 + when.second
     lat, lon = 47.3769, 8.5417
-    line = _Timeline(channels)
+    line = Timeline(channels)
     line.add(1, 0.060, sentences.zda(when))
     line.add(1, 0.060, sentences.gga(seconds_of_day, lat, lon))
     # The recording: a GPS group every 20 ms (four GGA with a fix), the magnetometer every

@@ -15,7 +15,7 @@ from maglog.calib.card import open_card, read_logs
 from maglog.sim import sentences
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.logger import LoggerModel
-from maglog.sim.system import SystemScenario, _Timeline, short_scenario
+from maglog.sim.system import SystemScenario, Timeline, short_scenario
 from maglog.sw.app import (LED_FIX, LED_RECORDING, AppSettings, Blink, FwError, LoggerApp,
                            State)
 from maglog.sw.fat32 import format_image
@@ -116,7 +116,7 @@ def long_scenario(*, gps_every=0.2, until=3.0, presses=(0.3, 2.5), start=0.35, s
     base = short_scenario()
     when = base.timestamp
     seconds_of_day = when.hour * 3600 + when.minute * 60 + when.second
-    line = _Timeline(base.channels)
+    line = Timeline(base.channels)
     line.add(1, zda_at, sentences.zda(when))
     events = []
     t, n = start, 0

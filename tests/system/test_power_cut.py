@@ -37,7 +37,7 @@ from maglog.hw.arch import fat32 as arch
 from maglog.sim import sentences
 from maglog.sim.models.card_image import TracingImage
 from maglog.sim.models.logger import LoggerModel
-from maglog.sim.system import SystemScenario, _Timeline, short_scenario
+from maglog.sim.system import SystemScenario, Timeline, short_scenario
 from maglog.sw import fat32
 from maglog.sw.app import AppSettings, LoggerApp
 from maglog.sw.fat32 import ImageFile, Volume, format_image
@@ -114,7 +114,7 @@ def campaign_scenario():
     base = short_scenario()
     when = base.timestamp
     seconds_of_day = when.hour * 3600 + when.minute * 60 + when.second
-    line = _Timeline(base.channels)
+    line = Timeline(base.channels)
     line.add(1, 0.1, sentences.zda(when))
     rng = random.Random(SEED)
     events = []
