@@ -194,13 +194,20 @@ class Dma(wiring.Component):
         """SD read data fills the buffer from its start (after `arm_read`), a byte lane at a
         time."""
         fill = Signal(range(arch_sd.BLOCK_BYTES + 1))
+        filling = Signal()
         control = self._control.f
+        # Every field of `fill_write` is given by an expression, none in an `If`: a signal
+        # driven partly by a process comes out of Yosys's Verilog as a `reg` whose other bits
+        # are set by bare `always @*` blocks, which Icarus (-g2012, as cocotb builds) first
+        # runs when their inputs change, so the first bytes of a block of zeros were written
+        # with an undefined address and data.
         m.d.comb += [
+            filling.eq(self.sd_o.valid & (fill < arch_sd.BLOCK_BYTES)),
             fill_write.addr.eq(fill[2:]),
             fill_write.data.eq(Cat([self.sd_o.payload] * WORD_BYTES)),
+            fill_write.en.eq(Mux(filling, 1 << fill[:2], 0)),
         ]
-        with m.If(self.sd_o.valid & (fill < arch_sd.BLOCK_BYTES)):
-            m.d.comb += fill_write.en.eq(1 << fill[:2])
+        with m.If(filling):
             m.d.sync += fill.eq(fill + 1)
         with m.If(control.arm_read.w_stb & control.arm_read.w_data):
             m.d.sync += fill.eq(0)
