@@ -126,10 +126,8 @@ def test_the_card_check_firmware_writes_a_block_through_the_dma(backend, build_d
 
 @pytest.mark.cocotb
 @pytest.mark.slow
-@pytest.mark.parametrize("backend", ["verilator"])
+@pytest.mark.parametrize("backend", ["verilator", "icarus"])
 def test_a_recording_of_the_short_scenario(backend, build_dir, external, fat_tools, tmp_path):
-    # Not on Icarus yet: there the first block the card sends reads back from the DMA's
-    # sector buffer with undefined (X) bits, 10 ms into the run (mounting the card).
     external.simulator(backend)
     scenario = short_scenario()
     image = blank_card(tmp_path / "card.img")
