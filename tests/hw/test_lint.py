@@ -103,6 +103,22 @@ def test_top_is_lint_clean_but_for_the_waivers(name, verilator, tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 
+#: Yosys starts each combinational block it writes with a time-0 kick (an empty ``if`` on a
+#: register that changes at time 0). A block without one (a signal assigned partly in a
+#: process, partly not) runs only when an input changes: under Icarus with -g2012 (cocotb's
+#: flags) it keeps X until then (the sector buffer's fill address did, dea8e7d).
+_BARE_ALWAYS = re.compile(r"always @\*\s*\n(?!\s*if \(\\\$auto\$verilog_backend)")
+
+
+@pytest.mark.parametrize("name", sorted(TOPS))
+def test_every_combinational_block_runs_at_time_zero(name):
+    text = TOPS[name]()
+    blocks = text.count("always @*")
+    bare = [text[m.start():m.start() + 160].replace("\n", " ")
+            for m in _BARE_ALWAYS.finditer(text)]
+    assert blocks and not bare, bare[:3]
+
+
 def test_only_the_waived_categories_occur(unwaived):
     found = {category for warnings in unwaived.values() for category, _ in warnings}
     # Nothing outside the waivers (the test above says where), and no waiver left unused.
