@@ -66,11 +66,12 @@ def test_amaranth_gives_the_models_card(blank, model_card):
 
 @pytest.mark.slow
 @pytest.mark.cocotb
-def test_verilator_gives_the_models_card(blank, model_card, external, tmp_path):
+@pytest.mark.parametrize("backend", ["verilator"])
+def test_cocotb_gives_the_models_card(backend, blank, model_card, external, tmp_path):
     from maglog.sim.system_cocotb import run_system_cocotb
-    external.simulator("verilator")
+    external.simulator(backend)
     image = CardImage.load(blank)
-    result = run_system_cocotb(short_scenario(), image, backend="verilator",
+    result = run_system_cocotb(short_scenario(), image, backend=backend,
                                build_dir=tmp_path / "build", settings=AppSettings(**SETTINGS))
     assert result.sdram_errors == [] and result.card_errors == []
     assert differing_blocks(image, model_card) == []
