@@ -507,7 +507,11 @@ class GpsTime(_CsrComponent):
                     with m.Elif((state == _Zda.DECIMALS) | ~is_digit):
                         m.d.sync += state.eq(_Zda.SKIP)
                 with m.Case(_Zda.DATE):
-                    width = Array(ZDA_DATE_DIGITS)[field]
+                    # The field's width from a constant, not an Array: Yosys writes an
+                    # Array's lookup as an `always @*` that Icarus -g2012 (cocotb's flags)
+                    # never runs while `field` keeps its initial 0, so the width stayed x
+                    # and no ZDA was ever taken there.
+                    width = Cat(C(w, 3) for w in ZDA_DATE_DIGITS).word_select(field, 3)
                     with m.If(is_digit & (digits < width)):
                         m.d.sync += [acc.eq(shifted), digits.eq(digits + 1)]
                     with m.Elif((byte == arch.COMMA) & (digits == width)):
