@@ -66,7 +66,7 @@ def test_amaranth_gives_the_models_card(blank, model_card):
 
 @pytest.mark.slow
 @pytest.mark.cocotb
-@pytest.mark.parametrize("backend", ["verilator"])
+@pytest.mark.parametrize("backend", ["verilator", "icarus"])
 def test_cocotb_gives_the_models_card(backend, blank, model_card, external, tmp_path):
     from maglog.sim.system_cocotb import run_system_cocotb
     external.simulator(backend)
