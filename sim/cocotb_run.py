@@ -13,6 +13,7 @@ import contextlib
 import importlib.util
 import json
 import os
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -101,6 +102,22 @@ def simulator_environment(backend):
                 os.environ[name] = value
 
 
+#: Yosys starts each combinational block it writes with ``if (<kick>) begin end`` on a
+#: register declared ``reg <kick> = 0;``, meant to run every block once at time 0. Icarus
+#: with -g2012 (cocotb's flags) applies a declaration's value without an event, so no block
+#: runs then and each keeps x until one of its inputs changes (a lookup on a register that
+#: stays at its initial value never runs at all). :func:`icarus_source` raises each kick at
+#: time 0 for Icarus builds.
+_KICK = re.compile(r"^(\s*)reg (\\\$auto\$verilog_backend\.cc:\d+:dump_module\$\d+ ) = 0;$",
+                   re.MULTILINE)
+
+
+def icarus_source(verilog_text):
+    """The Verilog as Icarus builds it: every Yosys time-0 kick raised at ``#0``."""
+    return _KICK.sub(lambda m: f"{m.group(0)}\n{m.group(1)}initial #0 {m.group(2)}= 1'b1;",
+                     verilog_text)
+
+
 class CocotbBuild:
     """One Verilog top built for one simulator, run as often as needed."""
 
@@ -120,12 +137,17 @@ class CocotbBuild:
     def built(self):
         return self._runner is not None
 
-    def build(self, verilog_text):
+    def build(self, verilog_text, *, extra_args=()):
+        """Build ``verilog_text`` (Icarus: through :func:`icarus_source`); ``extra_args``
+        go to the simulator's build after the project's own."""
         from cocotb_tools.runner import get_runner
         self.build_dir.mkdir(parents=True, exist_ok=True)
         source = self.build_dir / f"{self.toplevel}.v"
+        if self.backend == "icarus":
+            verilog_text = icarus_source(verilog_text)
         source.write_text(verilog_text)
-        build_args = verilator_waiver_args() if self.backend == "verilator" else []
+        build_args = [*(verilator_waiver_args() if self.backend == "verilator" else []),
+                      *extra_args]
         log_file = self.build_dir / "build.log"
         with simulator_environment(self.backend):
             runner = get_runner(self.backend)

@@ -240,17 +240,8 @@ class _SystemBuild:
         return self.cocotb.build_dir
 
     def build(self, verilog_text):
-        from . import cocotb_run
-        if self.cocotb.backend != "verilator":
-            self.cocotb.build(verilog_text)
-            return
-        waivers = cocotb_run.verilator_waiver_args
-        # CocotbBuild takes its Verilator options from this one function.
-        cocotb_run.verilator_waiver_args = lambda: [*waivers(), *VERILATOR_SPEED_ARGS]
-        try:
-            self.cocotb.build(verilog_text)
-        finally:
-            cocotb_run.verilator_waiver_args = waivers
+        extra = VERILATOR_SPEED_ARGS if self.cocotb.backend == "verilator" else ()
+        self.cocotb.build(verilog_text, extra_args=extra)
 
     def run(self, test_module, stimulus, *, waves=False):
         return self.cocotb.run(test_module, stimulus, waves=waves)

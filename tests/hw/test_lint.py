@@ -35,8 +35,9 @@ from maglog.hw.storage import Storage
 from maglog.hw.top import Logger, component_verilog
 from maglog.hw.top import generate_verilog as logger_verilog
 from maglog.sim.amaranth_tb import CLOCK_HZ
-from maglog.sim.cocotb_run import (VERILATOR_WAIVERS, CocotbBuild, simulator_environment,
-                                   verilator_bin_dir, verilator_waiver_args)
+from maglog.sim.cocotb_run import (VERILATOR_WAIVERS, CocotbBuild, icarus_source,
+                                   simulator_environment, verilator_bin_dir,
+                                   verilator_waiver_args)
 
 #: Every top converted for cocotb or the CLI: name → Verilog text. The whole logger (as
 #: `maglog hdl verilog` writes it), the front end in the configurations the project builds
@@ -104,19 +105,53 @@ def test_top_is_lint_clean_but_for_the_waivers(name, verilator, tmp_path):
 
 
 #: Yosys starts each combinational block it writes with a time-0 kick (an empty ``if`` on a
-#: register that changes at time 0). A block without one (a signal assigned partly in a
-#: process, partly not) runs only when an input changes: under Icarus with -g2012 (cocotb's
-#: flags) it keeps X until then (the sector buffer's fill address did, dea8e7d).
+#: register declared ``= 0``). A block without one (a signal assigned partly in a process,
+#: partly not) is not even covered by the kick that the Icarus builds raise at time 0
+#: (sim.cocotb_run.icarus_source): it runs only when an input changes, and under Icarus
+#: -g2012 it keeps x until then (the sector buffer's fill address did, dea8e7d).
 _BARE_ALWAYS = re.compile(r"always @\*\s*\n(?!\s*if \(\\\$auto\$verilog_backend)")
 
 
 @pytest.mark.parametrize("name", sorted(TOPS))
-def test_every_combinational_block_runs_at_time_zero(name):
+def test_every_combinational_block_has_its_time_zero_kick(name):
     text = TOPS[name]()
     blocks = text.count("always @*")
     bare = [text[m.start():m.start() + 160].replace("\n", " ")
             for m in _BARE_ALWAYS.finditer(text)]
     assert blocks and not bare, bare[:3]
+    kicks = len(re.findall(r"reg \\\$auto\$verilog_backend\S+ += 0;", text))
+    assert icarus_source(text).count("initial #0 ") == kicks > 0
+
+
+#: A block Yosys would write for a lookup on a register that keeps its initial value: the
+#: kick register is declared ``= 0`` and never changes.
+_LOOKUP = """module lookup;
+  reg \\$auto$verilog_backend.cc:1:dump_module$1  = 0;
+  reg [1:0] field = 0;
+  reg [2:0] width;
+  always @* begin
+    if (\\$auto$verilog_backend.cc:1:dump_module$1 ) begin end
+    width = 3'h0;
+    case (field) 2'h0: width = 3'h2; endcase
+  end
+  initial #10 $display("width=%b", width);
+endmodule
+"""
+
+
+@pytest.mark.parametrize("raised", [False, True])
+def test_icarus_runs_every_block_at_time_zero_once_the_kick_is_raised(raised, external,
+                                                                      tmp_path):
+    iverilog = external.tool("iverilog", why="the Icarus build's time-0 behaviour")
+    source = tmp_path / "lookup.v"
+    source.write_text(icarus_source(_LOOKUP) if raised else _LOOKUP)
+    subprocess.run([iverilog, "-g2012", "-o", str(tmp_path / "lookup"), str(source)],
+                   check=True, capture_output=True)
+    vvp = Path(iverilog).with_name("vvp")
+    out = subprocess.run([str(vvp), str(tmp_path / "lookup")], check=True,
+                         capture_output=True, text=True).stdout
+    # cocotb builds Icarus with -g2012: without the raised kick the block never runs.
+    assert ("width=010" if raised else "width=xxx") in out, out
 
 
 def test_only_the_waived_categories_occur(unwaived):
