@@ -13,7 +13,6 @@ from amaranth.lib import wiring
 
 from maglog.hw.arch import sd as arch_sd
 from maglog.hw.arch.sdram import MT48LC4M32B2
-from maglog.hw.dma import DmaSource
 from maglog.hw.arbiter import FrameArbiter
 from maglog.hw.storage import Storage
 from maglog.sim.amaranth_tb import run_simulation
@@ -24,6 +23,7 @@ from maglog.sim.sdio_amaranth import CsrBus, run_card
 from maglog.sim.sdram_amaranth import run_sdram
 from maglog.sw.regmap import RegisterMap
 from maglog.sw.sdcard import SdCardDriver
+from maglog.sw.storage import RingSource
 
 #: The system clock of the whole chain: the simulation runs at it, the SDRAM controller and
 #: the chip model time their rules by it, and the driver is told it. 4 MHz, not the board's
@@ -31,21 +31,6 @@ from maglog.sw.sdcard import SdCardDriver
 CLK_FREQ = 4e6
 SECTOR = arch_sd.BLOCK_BYTES
 FIRST_LBA = 8192
-
-
-class RingSource:
-    """The DMA's ring mode as the driver's data source."""
-    def __init__(self, bus, regs):
-        self.bus, self.regs = bus, regs
-
-    async def arm(self, first, count):
-        control = self.regs["control"]
-        await self.bus.write(control.address, control.encode(
-            start=1, source=DmaSource.RING.value, sectors=count, first=first))
-
-    async def cancel(self):
-        control = self.regs["control"]
-        await self.bus.write(control.address, control.encode(abort=1))
 
 
 BODY = bytes(b for b in range(0x20, 0x7F) if b != ord("$"))
