@@ -1,0 +1,1 @@
+"""Backend-agnostic runners: the same stimulus in, one result out."""

@@ -1,0 +1,1 @@
+"""Stimulus: flight scenarios (TOML), the truth they imply, and the sensor byte streams."""
