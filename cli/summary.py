@@ -26,7 +26,7 @@ from ..calib.scalar import PARAMETERS
 
 
 __all__ = ["CAUSES", "RESIDUAL_RATIO", "Z_MAX", "K_ABS", "C_ABS_NT", "TOLERANCES", "Check",
-           "Summary", "summarize", "log_frames", "canonical_kc"]
+           "Summary", "summarize", "log_frames", "canonical_kc", "recovered_kc"]
 
 #: The front end's counters per channel, in the order the table shows them (``kept`` then
 #: the drop causes of DESIGN.md's frame rules; ``overflow``: no room in the frame FIFO).
@@ -236,7 +236,7 @@ def canonical_kc(k, c):
     return r * signs[:, None], (q * signs).T @ c
 
 
-def _recovered(run):
+def recovered_kc(run):
     """The run's K, c and 1σ per parameter (None: the method gives none)."""
     res = run.result
     if run.method == "ellipsoid":
@@ -278,7 +278,7 @@ def _parameters(truth, run):
         return ["Parameters: the truth gives no K and c"], \
             [Check("parameters", SKIP, "the truth gives no K and c")], {}
     k_true, c_true = canonical_kc(errors["K"], errors["c"])
-    k, c, sigma = _recovered(run)
+    k, c, sigma = recovered_kc(run)
     iu = np.triu_indices(3)
     ours = np.concatenate([k[iu], c])
     true = np.concatenate([k_true[iu], c_true])
@@ -325,9 +325,12 @@ def summarize(truth, counters, logs, run, *, calibration_error=None):
     bytes)]`` read from the card; ``run``: the :class:`~maglog.calib.pipeline.CalibrationRun`,
     or None (or the exception) when the calibration failed; ``calibration_error``: why it
     failed (an exception or text), said in the summary."""
-    if not isinstance(truth, dict) or truth.get("version") != 1:
-        raise ValueError("truth must be the dict of a truth.json of version 1, not "
-                         f"{type(truth).__name__ if not isinstance(truth, dict) else truth.get('version')!r}")
+    if not isinstance(truth, dict):
+        raise ValueError(f"truth must be the dict of a truth.json of version 1, not "
+                         f"{type(truth).__name__}")
+    if truth.get("version") != 1:
+        raise ValueError(f"truth must be the dict of a truth.json of version 1, not version "
+                         f"{truth.get('version')!r}")
     if isinstance(run, BaseException):
         run, calibration_error = None, run
     if run is not None and not isinstance(run, CalibrationRun):
