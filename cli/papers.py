@@ -166,12 +166,22 @@ def paper_a(run, truth, out_dir):
                                     "O_nT": np.array(PAPER_A["O_nT"]) - b_true}
     out["ours"] = {"P": p_ours, "O_nT": o_ours, "K": k, "c_nT": c,
                    "method": run.method}
+    if a_true is not None:
+        same = max(float(np.max(np.abs(np.array(PAPER_A["P"]) - a_true))),
+                   float(np.max(np.abs(np.array(PAPER_A["O_nT"]) - b_true))) / 1000.0)
+        out["truth_is_table_1"] = same < 1e-6
+        note = ("The scenario's sensor is Table 1 itself (preset paper_a reads P as A and O "
+                "as b: sim/stimulus/errors.py), so its row repeats the paper's." if same < 1e-6
+                else "The scenario's sensor is not Table 1 (preset "
+                     f"{errors.get('preset', '?')}): compare the reading, not the numbers.")
+    else:
+        note = "The truth gives no A and b: ours is shown beside the paper's only."
     header = "| | " + " | ".join(f"P{i}{j}" for i in range(1, 4) for j in range(1, 4)) + \
         " | O1 (nT) | O2 (nT) | O3 (nT) |"
     lines += ["The sensor reads `b = P B_e + O` (our reading of Table 1: P = A, O = b of "
               "eq. 1-5; the scalar check recovers A only up to a rotation, so ours is shown "
               "as K⁻¹ and turned onto the truth's A by the rotation U the check cannot see).",
-              "", header, "|---|" + "---:|" * 12]
+              "", note, "", header, "|---|" + "---:|" * 12]
     for label, p, o in rows:
         lines.append(f"| {label} | " + " | ".join(f"{v:.4f}" for v in np.ravel(p)) + " | "
                      + " | ".join(f"{v:.1f}" for v in o) + " |")
