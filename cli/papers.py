@@ -359,9 +359,13 @@ def paper_b(truth, out_dir, *, seed=0, quick=False):
                      f"scatter {curve['fit_scatter_deg'][0]:.3f}° → "
                      f"{curve['fit_scatter_deg'][-1]:.3f}°; with unlimited samples "
                      f"{curve['unlimited_samples_error_deg']:.3f}°.")
+    a = _error_model(truth, 0.0).matrix()
+    u, _, vt = np.linalg.svd(a)
+    rotation = float(np.degrees(np.arccos(np.clip((np.trace(u @ vt) - 1) / 2, -1, 1))))
     lines += ["- What unlimited samples leave is the ellipsoid method's own limit: its "
-              "symmetric W cannot undo the rotation part of A (the axes' non-orthogonality), "
-              "and a noisy compass's single readings scatter too.", "",
+              "symmetric W cannot undo the rotation part of A (the axes' non-orthogonality; "
+              f"here a rotation of {rotation:.2f}°), and a noisy compass's single readings "
+              "scatter too.", "",
               "![Paper B](paper_b_heading.png)", ""]
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -383,7 +387,8 @@ def paper_b(truth, out_dir, *, seed=0, quick=False):
     ax.set_title("Paper B, Fig. 5 style: heading error vs samples per octant")
     ax.legend(fontsize=8)
     plots = {"paper_b_heading": _save(plt, fig, Path(out_dir) / "paper_b_heading.png")}
-    return {"paper": PAPER_B, "curves": curves, "seed": seed, "error_model": source}, \
+    return {"paper": PAPER_B, "curves": curves, "seed": seed, "error_model": source,
+            "unseen_rotation_deg": rotation}, \
         lines, plots
 
 
