@@ -75,3 +75,29 @@ def test_cocotb_gives_the_models_card(backend, blank, model_card, external, tmp_
                                build_dir=tmp_path / "build", settings=AppSettings(**SETTINGS))
     assert result.sdram_errors == [] and result.card_errors == []
     assert differing_blocks(image, model_card) == []
+
+
+@pytest.fixture(scope="session")
+def fast_build(tmp_path_factory):
+    """One build folder for the fast harness per test session (a build takes ~20 s)."""
+    return tmp_path_factory.mktemp("fast-build")
+
+
+def test_fast_harness_gives_the_models_card(blank, model_card, external, fast_build):
+    """The fast path (Verilator with the C++ harness, the command-level card) gives the
+    card the model gives, and its front end counted what the reference filter counts."""
+    from maglog.sim.backends.fast import CHANNEL_NAMES, run_system_fast
+    from maglog.sim.reference import Kind, reference_filter
+    external.simulator("verilator")
+    external.tool("c++", "the fast harness is C++")
+    scenario = short_scenario()
+    image = CardImage.load(blank)
+    result = run_system_fast(scenario, image, build_dir=fast_build,
+                             settings=AppSettings(**SETTINGS))
+    assert result.card_errors == []
+    assert differing_blocks(image, model_card) == []
+    kinds = {"pmag": Kind.PMAG, "nmea": Kind.NMEA, "cesium": Kind.CESIUM}
+    for k, channel in enumerate(scenario.channels):
+        expected = reference_filter(kinds[channel.kind.value], scenario.channel_bytes(k),
+                                    max_frame=scenario.max_frame).counters
+        assert result.counters[CHANNEL_NAMES[k]] == expected, CHANNEL_NAMES[k]
