@@ -352,6 +352,8 @@ def summarize(truth, counters, logs, run, *, calibration_error=None):
                                "reference": run.reference, "samples": int(len(run.b)),
                                "warnings": list(run.warnings)}
         lines, found, data["residual"] = _residual(truth, run)
+        blocks.append([f"Calibration of {run.log_name}: {run.method} against the "
+                       f"{run.reference}, {len(run.b)} samples"])
         blocks.append(lines)
         checks += found
         lines, found, data["parameters"] = _parameters(truth, run)
@@ -359,8 +361,11 @@ def summarize(truth, counters, logs, run, *, calibration_error=None):
         checks += found
         if run.warnings:
             blocks.append(["Calibration warnings"] + [f"  - {w}" for w in run.warnings])
+    skipped = sum(c.status == SKIP for c in checks)
     verdict = "ALL CHECKS PASS" if not any(c.status == FAIL for c in checks) else \
         f"FAILED: {', '.join(c.name for c in checks if c.status == FAIL)}"
+    if skipped:
+        verdict += f" ({skipped} skipped: nothing to check against)"
     blocks.append(["Verdicts"] + [f"  {c.line()}" for c in checks] + [f"  => {verdict}"])
     text = "\n\n".join("\n".join(block) for block in blocks) + "\n"
     return Summary(text=text, checks=checks, data=data)
