@@ -15,17 +15,19 @@ between backends by the firmware's speed.
 
 from __future__ import annotations
 
+import bisect
 import datetime as _dt
+import functools
 import random
 from dataclasses import dataclass, field
 
 from ..hw.arch import frames as arch_frames
 from ..hw.arch import uart as arch_uart
 from ..hw.frame_filter import ChannelKind
-from ..hw.frontend import ChannelConfig
+from ..hw.frontend import ChannelConfig, divisor_for
 from . import sentences
-from .reference import Kind, reference_filter
-from .uart_line import encode
+from .reference import ERROR_MARK, Kind, ReferenceFilter, reference_filter
+from .uart_line import decode, encode
 
 
 __all__ = ["Burst", "SystemScenario", "SystemResult", "Timeline", "flight_scenario",
@@ -42,13 +44,19 @@ _KIND = {ChannelKind.PMAG: Kind.PMAG, ChannelKind.NMEA: Kind.NMEA,
 
 @dataclass(frozen=True)
 class Burst:
-    """Bytes sent back to back on one channel's line from ``start`` (seconds)."""
+    """Bytes sent back to back on one channel's line from ``start`` (seconds).
+
+    ``baud``: the line's actual rate for this burst when it differs from the channel's
+    nominal one (a baud-error fault; the gateware still samples at the nominal rate), None
+    for the nominal rate."""
     channel: int
     start: float
     data: bytes
+    baud: float | None = None
 
     def end(self, baud):
-        return self.start + len(self.data) * UART_FRAME_BITS / baud
+        """When the last stop bit ends, ``baud`` being the channel's nominal rate."""
+        return self.start + len(self.data) * UART_FRAME_BITS / (self.baud or baud)
 
 
 @dataclass
@@ -90,7 +98,8 @@ class SystemScenario:
         :meth:`from_json`."""
         return {"channels": [[c.kind.value, c.baud] for c in self.channels],
                 "clk_freq": self.clk_freq,
-                "bursts": [[b.channel, b.start, b.data.hex()] for b in self.bursts],
+                "bursts": [[b.channel, b.start, b.data.hex()]
+                           + ([] if b.baud is None else [b.baud]) for b in self.bursts],
                 "presses": list(self.presses), "until": self.until, "hold": self.hold,
                 "debounce_s": self.debounce_s, "max_frame": self.max_frame,
                 "timestamp": None if self.timestamp is None else self.timestamp.isoformat()}
@@ -100,8 +109,8 @@ class SystemScenario:
         return cls(channels=tuple(ChannelConfig(ChannelKind(kind), baud)
                                   for kind, baud in data["channels"]),
                    clk_freq=data["clk_freq"],
-                   bursts=[Burst(k, start, bytes.fromhex(text))
-                           for k, start, text in data["bursts"]],
+                   bursts=[Burst(k, start, bytes.fromhex(text), *baud)
+                           for k, start, text, *baud in data["bursts"]],
                    presses=list(data["presses"]), until=data["until"], hold=data["hold"],
                    debounce_s=data["debounce_s"], max_frame=data["max_frame"],
                    timestamp=None if data["timestamp"] is None
@@ -114,9 +123,69 @@ class SystemScenario:
         """Every byte channel ``channel`` carries, in order."""
         return b"".join(b.data for b in self.channel_bursts(channel))
 
+    def off_nominal(self, channel):
+        """Whether some burst of ``channel`` runs at a rate other than the nominal one."""
+        baud = self.channels[channel].baud
+        return any(b.baud is not None and b.baud != baud for b in self.channel_bursts(channel))
+
+    def sampling_bit_cycles(self, channel):
+        """The bit time the gateware's receiver samples with, in clock cycles (16 ticks of
+        its whole-cycle divisor)."""
+        return arch_uart.OVERSAMPLING * divisor_for(self.clk_freq,
+                                                    self.channels[channel].baud)
+
+    def received(self, channel):
+        """``(events, times)``: what the channel's receiver reports, as ``(byte, error)``
+        pairs, and when (seconds, the end of each character's stop bit on the line).
+
+        A burst at the nominal rate is received as sent. A burst at another rate is encoded
+        at its own bit time (:func:`~maglog.sim.uart_line.encode`, idle before and after)
+        and decoded at the gateware's (:meth:`sampling_bit_cycles`) by the ideal receiver
+        :func:`~maglog.sim.uart_line.decode`; when that gives one character per byte each
+        keeps its byte's time, otherwise all of them take the burst's end."""
+        nominal = self.channels[channel].baud
+        events, times = [], []
+        for burst in self.channel_bursts(channel):
+            per_byte = UART_FRAME_BITS / (burst.baud or nominal)
+            got = self.burst_events(burst)
+            if len(got) == len(burst.data):
+                times += [burst.start + (i + 1) * per_byte for i in range(len(got))]
+            else:
+                times += [burst.end(nominal)] * len(got)
+            events += got
+        return events, times
+
+    def burst_events(self, burst):
+        """What the receiver of ``burst``'s channel reports for it (see :meth:`received`),
+        as ``(byte, error)`` pairs."""
+        nominal = self.channels[burst.channel].baud
+        baud = burst.baud or nominal
+        if baud == nominal:
+            return [(byte, False) for byte in burst.data]
+        return list(_decoded(burst.data, self.clk_freq / baud,
+                             self.sampling_bit_cycles(burst.channel)))
+
+    def received_filter(self, channel):
+        """The reference filter's result over what ``channel``'s receiver reports
+        (:meth:`received`)."""
+        kind = _KIND[self.channels[channel].kind]
+        if not self.off_nominal(channel):
+            return reference_filter(kind, self.channel_bytes(channel), max_frame=self.max_frame)
+        ref = ReferenceFilter(kind, self.max_frame)
+        for burst in self.channel_bursts(channel):
+            events = self.burst_events(burst)
+            if len(events) == len(burst.data) and not any(e for _, e in events):
+                ref.feed_all(bytes(b for b, _ in events))
+            else:
+                for byte, error in events:
+                    ref.feed(byte, error)
+        return ref.result
+
     def kept_frames(self, channel):
         """``(end_time, frame)`` for each frame the reference filter keeps on a channel;
         the end time is that of the frame's stop bit of its last byte."""
+        if self.off_nominal(channel):
+            return self._kept_received(channel)
         baud = self.channels[channel].baud
         kind = _KIND[self.channels[channel].kind]
         stream = self.channel_bytes(channel)
@@ -127,13 +196,25 @@ class SystemScenario:
         for burst in self.channel_bursts(channel):
             starts.append((offset, burst))
             offset += len(burst.data)
+        offsets = [s[0] for s in starts]
         result, search = [], 0
         for frame in kept:
             at = stream.index(frame, search)
             last = at + len(frame) - 1
             search = last + 1
-            base, burst = max((s for s in starts if s[0] <= last), key=lambda s: s[0])
+            base, burst = starts[bisect.bisect_right(offsets, last) - 1]
             result.append((burst.start + (last - base + 1) * UART_FRAME_BITS / baud, frame))
+        return result
+
+    def _kept_received(self, channel):
+        events, times = self.received(channel)
+        kept = self.received_filter(channel).frames
+        text = "".join(ERROR_MARK if error else chr(byte) for byte, error in events)
+        result, search = [], 0
+        for frame in kept:
+            at = text.index(frame.decode("latin-1"), search)
+            search = at + len(frame)
+            result.append((times[search - 1], frame))
         return result
 
     def log_frames(self, start, stop):
@@ -164,8 +245,8 @@ class SystemScenario:
         ``button`` high while pressed), starting with their levels at cycle 0."""
         changes = {}             # cycle -> list of (pin, bit, level)
         for k in range(len(self.channels)):
-            bit_cycles = self.bit_cycles(k)
             for burst in self.channel_bursts(k):
+                bit_cycles = self.clk_freq / (burst.baud or self.channels[k].baud)
                 trace = encode(burst.data, bit_cycles=bit_cycles, lead_idle_bits=1.0,
                                tail_idle_bits=0.0)
                 cycle = round(burst.start * self.clk_freq) - trace.byte_starts[0]
@@ -204,6 +285,15 @@ class SystemScenario:
                                          f"press at {press} s")
 
 
+@functools.lru_cache(maxsize=4096)
+def _decoded(data, bit_cycles, sampling_bit_cycles):
+    """The ideal receiver's ``(byte, error)`` pairs for ``data`` sent at ``bit_cycles`` and
+    sampled at ``sampling_bit_cycles`` (idle line before and after)."""
+    trace = encode(data, bit_cycles=bit_cycles)
+    return tuple((e.data, e.error) for e in decode(trace.segments,
+                                                    bit_cycles=sampling_bit_cycles))
+
+
 def _pmag_frames(rng, count, seq0):
     frames = []
     for n in range(count):
@@ -233,14 +323,19 @@ class Timeline:
         self._ends = []
         self._free = [0.0] * len(channels)
 
-    def add(self, channel, start, frame):
-        baud = self.channels[channel].baud
-        duration = len(frame) * UART_FRAME_BITS / baud
+    def add(self, channel, start, frame, baud=None):
+        """Place ``frame`` on ``channel`` at ``start`` or later; ``baud`` the line's actual
+        rate when not the nominal one (see :class:`Burst`). Returns when it ends."""
+        duration = len(frame) * UART_FRAME_BITS / (baud or self.channels[channel].baud)
         start = max(start, self._free[channel])
-        while any(abs(start + duration - end) < MIN_END_GAP_S for end in self._ends):
+        while True:             # any end within MIN_END_GAP_S of this one? (ends sorted)
+            end = start + duration
+            near = bisect.bisect_right(self._ends, end - MIN_END_GAP_S)
+            if near == len(self._ends) or not self._ends[near] < end + MIN_END_GAP_S:
+                break
             start += MIN_END_GAP_S
-        self.bursts.append(Burst(channel, start, frame))
-        self._ends.append(start + duration)
+        self.bursts.append(Burst(channel, start, frame, baud))
+        bisect.insort(self._ends, start + duration)
         self._free[channel] = start + duration
         return start + duration
 

@@ -1,0 +1,401 @@
+"""Scenario files: TOML read with :mod:`tomllib`, every key checked against :data:`SCHEMA`.
+
+A scenario file holds tables; every key has a type, a check and a default (the built-in
+``default.toml`` spells all of them out). Unknown tables and keys are errors, and every error
+names the file, the table and the key::
+
+    scenario.toml: [flight.calibration] seconds must be > 0, not -3
+
+docs/scenarios.md describes every key.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+
+__all__ = ["ScenarioError", "SurveyScenario", "Fault", "SCHEMA", "FAULT_SCHEMA",
+           "CHANNEL_NAMES", "FAULT_KINDS", "default_scenario_path", "load_scenario",
+           "loads_scenario"]
+
+#: Channel names, in the logger's ``uart_rx`` order (FLIGHT_CHANNELS).
+CHANNEL_NAMES = ("mag", "gps", "cesium")
+FAULT_KINDS = ("noise_burst", "dropped_bytes", "bad_checksum", "baud_error", "gps_outage",
+               "card_busy")
+TIMINGS = ("rate", "groups", "stream")
+#: How far a baud-error fault may take a line (uart_line.encode's own limit).
+MAX_BAUD_ERROR = 0.25
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be used (the message says where and why, one line)."""
+
+
+# --- key checks ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Key:
+    kind: str                 # float, int, str, bool, datetime, floats, choice, path
+    default: object
+    check: object = None      # (predicate, "must be ...") or None
+    choices: tuple = ()
+
+
+def _positive():
+    return (lambda v: v > 0, "must be > 0")
+
+
+def _at_least(low):
+    return (lambda v: v >= low, f"must be >= {low:g}")
+
+
+def _within(low, high):
+    return (lambda v: low <= v <= high, f"must be within {low:g}..{high:g}")
+
+
+def _below(limit):
+    return (lambda v: v < limit, f"must be < {limit:g}")
+
+
+SCHEMA = {
+    "scenario": {
+        "name": Key("str", "unnamed"),
+        "seed": Key("int", 0, _at_least(0)),
+        "start": Key("datetime", _dt.datetime(2026, 6, 1, 10, 0, 0, tzinfo=_dt.timezone.utc)),
+        "clk_freq_hz": Key("float", 1_843_200.0, _positive()),
+        "max_frame": Key("int", 128, _within(18, 4096)),
+    },
+    "site": {
+        "lat_deg": Key("float", 47.3769, _within(-89.0, 89.0)),
+        "lon_deg": Key("float", 8.5417, _within(-180.0, 180.0)),
+        "ground_alt_m": Key("float", 408.0, _within(-400.0, 8000.0)),
+    },
+    "recording": {
+        "start_s": Key("float", 4.7, _positive()),
+        "stop_after_landing_s": Key("float", 2.0, _at_least(0.0)),
+        "end_after_stop_s": Key("float", 1.0, _positive()),
+        "quiet_before_s": Key("float", 0.05, _at_least(0.0)),
+        "quiet_after_s": Key("float", 0.25, _at_least(0.0)),
+        "hold_s": Key("float", 0.1, _positive()),
+        "debounce_s": Key("float", 0.01, _positive()),
+    },
+    "flight.ground": {
+        "seconds": Key("float", 8.0, _positive()),
+    },
+    "flight.takeoff": {
+        "seconds": Key("float", 10.0, _positive()),
+        "height_m": Key("float", 40.0, _positive()),
+    },
+    "flight.calibration": {
+        "headings_deg": Key("floats", [0.0, 90.0, 180.0, 270.0]),
+        "seconds": Key("float", 20.0, _positive()),
+        "turn_s": Key("float", 4.0, _at_least(0.0)),
+        "roll_deg": Key("float", 30.0, _within(0.0, 60.0)),
+        "pitch_deg": Key("float", 30.0, _within(0.0, 60.0)),
+        "yaw_deg": Key("float", 45.0, _within(0.0, 180.0)),
+    },
+    "flight.survey": {
+        "legs": Key("int", 2, _at_least(0)),
+        "leg_length_m": Key("float", 150.0, _positive()),
+        "speed_m_s": Key("float", 10.0, _positive()),
+        "course_deg": Key("float", 30.0, _within(-360.0, 360.0)),
+        "spacing_m": Key("float", 20.0, _at_least(0.0)),
+        "turn_s": Key("float", 6.0, _positive()),
+        "drag_per_s": Key("float", 0.1, _at_least(0.0)),
+    },
+    "flight.landing": {
+        "seconds": Key("float", 10.0, _positive()),
+    },
+    "flight.dynamics": {
+        "natural_hz": Key("float", 1.2, _within(0.05, 10.0)),
+        "damping": Key("float", 0.8, _within(0.1, 2.0)),
+        "max_rate_deg_s": Key("float", 120.0, _positive()),
+        "max_yaw_rate_deg_s": Key("float", 60.0, _positive()),
+        "turbulence_deg": Key("float", 0.7, _at_least(0.0)),
+        "turbulence_s": Key("float", 1.0, _within(0.02, 60.0)),
+    },
+    "gps": {
+        "first_s": Key("float", 1.0, _at_least(0.0)),
+        "offset_s": Key("float", 0.05, _within(0.0, 0.5)),
+        "fix_s": Key("float", 6.0, _at_least(0.0)),
+        "talker": Key("str", "GP"),
+        "satellites": Key("int", 10, _within(4, 12)),
+        "hdop": Key("float", 0.9, _positive()),
+        "geoid_m": Key("float", 47.4, _within(-120.0, 120.0)),
+        "distractors": Key("bool", True),
+    },
+    "channels.mag": {
+        "baud": Key("int", 115_200, _positive()),
+        "rate_hz": Key("float", 20.0, _within(10.0, 50.0)),
+        "first_s": Key("float", 0.0123, _at_least(0.0)),
+        "capture": Key("path", ""),
+        "timing": Key("choice", "rate", choices=TIMINGS),
+    },
+    "channels.gps": {
+        "baud": Key("int", 9_600, _positive()),
+        "capture": Key("path", ""),
+        "timing": Key("choice", "groups", choices=TIMINGS),
+    },
+    "channels.cesium": {
+        "baud": Key("int", 9_600, _positive()),
+        "rate_hz": Key("float", 10.0, _within(1.0, 20.0)),
+        "first_s": Key("float", 0.0437, _at_least(0.0)),
+        "noise_nT": Key("float", 0.05, _at_least(0.0)),
+        "signal": Key("int", 1250, _within(0, 9999)),
+        "capture": Key("path", ""),
+        "timing": Key("choice", "rate", choices=TIMINGS),
+    },
+    "errors": {
+        "preset": Key("choice", "paper_a", choices=("default", "paper_a", "none")),
+        "noise_nT": Key("float", 5.0, _at_least(0.0)),
+        "mounting_deg": Key("floats", [0.0, 0.0, 0.0]),
+    },
+}
+
+#: Keys of each fault kind (``[[faults.<kind>]]`` tables); None: required.
+FAULT_SCHEMA = {
+    "noise_burst": {"channel": Key("channel", None), "start_s": Key("float", None, _at_least(0.0)),
+                    "end_s": Key("float", None, _positive()),
+                    "count": Key("int", 1, _at_least(1)),
+                    "length": Key("int", 6, _within(1, 64))},
+    "dropped_bytes": {"channel": Key("channel", None),
+                      "start_s": Key("float", None, _at_least(0.0)),
+                      "end_s": Key("float", None, _positive()),
+                      "count": Key("int", 1, _at_least(1))},
+    "bad_checksum": {"channel": Key("channel", None),
+                     "start_s": Key("float", None, _at_least(0.0)),
+                     "end_s": Key("float", None, _positive()),
+                     "count": Key("int", 1, _at_least(1))},
+    "baud_error": {"channel": Key("channel", None), "start_s": Key("float", None, _at_least(0.0)),
+                   "end_s": Key("float", None, _positive()),
+                   "error": Key("float", None, _within(-MAX_BAUD_ERROR, MAX_BAUD_ERROR))},
+    "gps_outage": {"start_s": Key("float", None, _at_least(0.0)),
+                   "end_s": Key("float", None, _positive())},
+    "card_busy": {"start_s": Key("float", None, _at_least(0.0)),
+                  "end_s": Key("float", None, _positive()),
+                  "busy_s": Key("float", None, _within(1e-6, 10.0))},
+}
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One ``[[faults.<kind>]]`` table: ``kind``, its index among those of its kind (from
+    1), and its keys (``channel`` a name or None, ``start_s``, ``end_s``, ...)."""
+    kind: str
+    index: int
+    channel: str | None
+    start_s: float
+    end_s: float
+    params: dict = field(default_factory=dict)
+
+    @property
+    def where(self):
+        return f"[[faults.{self.kind}]] #{self.index}"
+
+
+@dataclass
+class SurveyScenario:
+    """A validated scenario: one namespace per table (``site``, ``recording``, ``gps``,
+    ``errors``; ``flight.<phase>``; ``channels[name]``) and the faults.
+
+    :meth:`build` turns it into a :class:`~maglog.sim.stimulus.Stimulus`."""
+    source: str
+    name: str
+    seed: int
+    start: _dt.datetime
+    clk_freq: float
+    max_frame: int
+    site: SimpleNamespace
+    recording: SimpleNamespace
+    flight: SimpleNamespace
+    gps: SimpleNamespace
+    channels: dict
+    errors: SimpleNamespace
+    faults: list
+    folder: Path | None = None        # where relative capture paths start
+
+    def build(self):
+        """The scenario's sensor streams, button presses, flight and truth (seeded)."""
+        from .build import build
+        return build(self)
+
+    def error(self, where, message):
+        return ScenarioError(f"{self.source}: {where} {message}")
+
+
+# --- parsing -------------------------------------------------------------------------------
+
+def _describe(value):
+    return repr(value)
+
+
+def _convert(source, where, name, key, value):
+    """``value`` checked against ``key``; raises ScenarioError naming ``where`` and
+    ``name``."""
+    original = value
+
+    def fail(what):
+        return ScenarioError(f"{source}: {where} {name} {what}, not {_describe(original)}")
+    kind = key.kind
+    if kind == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise fail("must be a finite number")
+        value = float(value)
+    elif kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise fail("must be an integer")
+    elif kind in ("str", "path"):
+        if not isinstance(value, str):
+            raise fail("must be a string")
+    elif kind == "bool":
+        if not isinstance(value, bool):
+            raise fail("must be true or false")
+    elif kind == "datetime":
+        if not isinstance(value, _dt.datetime):
+            raise fail("must be a TOML date-time (e.g. 2026-06-01T10:00:00Z)")
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=_dt.timezone.utc)
+        value = value.astimezone(_dt.timezone.utc)
+    elif kind == "floats":
+        if not isinstance(value, list) or not value or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in value):
+            raise fail("must be a non-empty list of finite numbers")
+        value = [float(v) for v in value]
+    elif kind == "choice":
+        if value not in key.choices:
+            raise fail(f"must be one of {', '.join(key.choices)}")
+    elif kind == "channel":
+        if value not in CHANNEL_NAMES:
+            raise fail(f"must be one of {', '.join(CHANNEL_NAMES)}")
+    if key.check is not None:
+        predicate, text = key.check
+        if not predicate(value):
+            raise fail(text)
+    return value
+
+
+def _table(source, where, schema, given):
+    if not isinstance(given, dict):
+        raise ScenarioError(f"{source}: {where} must be a table, not {_describe(given)}")
+    unknown = sorted(set(given) - set(schema))
+    if unknown:
+        raise ScenarioError(f"{source}: {where} unknown key {unknown[0]!r} (known: "
+                            f"{', '.join(schema)})")
+    values = {}
+    for name, key in schema.items():
+        if name in given:
+            values[name] = _convert(source, where, name, key, given[name])
+        elif key.default is None:
+            raise ScenarioError(f"{source}: {where} {name} is required")
+        else:
+            values[name] = key.default
+    return values
+
+
+def _split_tables(source, data):
+    """The document's tables by dotted name (``flight.takeoff``), and its fault lists."""
+    tables, faults = {}, {}
+    for top, value in data.items():
+        if top == "faults":
+            if not isinstance(value, dict):
+                raise ScenarioError(f"{source}: [faults] must hold [[faults.<kind>]] tables")
+            for kind, entries in value.items():
+                if kind not in FAULT_SCHEMA:
+                    raise ScenarioError(f"{source}: unknown fault kind [[faults.{kind}]] "
+                                        f"(known: {', '.join(FAULT_KINDS)})")
+                if not isinstance(entries, list):
+                    raise ScenarioError(f"{source}: faults.{kind} must be an array of tables "
+                                        f"([[faults.{kind}]]), not {_describe(entries)}")
+                faults[kind] = entries
+        elif top in ("flight", "channels"):
+            if not isinstance(value, dict):
+                raise ScenarioError(f"{source}: [{top}] must be a table")
+            for sub, inner in value.items():
+                name = f"{top}.{sub}"
+                if name not in SCHEMA:
+                    known = ", ".join(k for k in SCHEMA if k.startswith(top + "."))
+                    raise ScenarioError(f"{source}: unknown table [{name}] (known: {known})")
+                tables[name] = inner
+        elif top in SCHEMA:
+            tables[top] = value
+        else:
+            known = sorted({k.split(".")[0] for k in SCHEMA} | {"faults"})
+            raise ScenarioError(f"{source}: unknown table [{top}] (known: {', '.join(known)})")
+    return tables, faults
+
+
+def scenario_from_dict(data, *, source="<scenario>", folder=None):
+    """A :class:`SurveyScenario` from a parsed TOML document."""
+    tables, fault_lists = _split_tables(source, data)
+    values = {name: _table(source, f"[{name}]", schema, tables.get(name, {}))
+              for name, schema in SCHEMA.items()}
+    faults = []
+    for kind in FAULT_KINDS:
+        for index, entry in enumerate(fault_lists.get(kind, []), 1):
+            where = f"[[faults.{kind}]] #{index}"
+            fields = _table(source, where, FAULT_SCHEMA[kind], entry)
+            if not fields["end_s"] > fields["start_s"]:
+                raise ScenarioError(f"{source}: {where} end_s must be > start_s "
+                                    f"({fields['start_s']:g}), not {fields['end_s']!r}")
+            channel = fields.pop("channel", "gps" if kind == "gps_outage" else None)
+            if kind == "bad_checksum" and channel == "cesium":
+                raise ScenarioError(f"{source}: {where} channel must be mag or gps (cesium "
+                                    "lines have no checksum), not 'cesium'")
+            faults.append(Fault(kind, index, channel, fields.pop("start_s"),
+                                fields.pop("end_s"), fields))
+    scenario = values["scenario"]
+    calibration = values["flight.calibration"]
+    if any(not -360.0 <= h <= 360.0 for h in calibration["headings_deg"]):
+        raise ScenarioError(f"{source}: [flight.calibration] headings_deg must lie within "
+                            f"-360..360, not {calibration['headings_deg']!r}")
+    errors = values["errors"]
+    if len(errors["mounting_deg"]) != 3:
+        raise ScenarioError(f"{source}: [errors] mounting_deg must be three angles (roll, "
+                            f"pitch, yaw), not {errors['mounting_deg']!r}")
+    talker = values["gps"]["talker"]
+    if len(talker) != 2 or not talker.isascii() or not talker.isupper():
+        raise ScenarioError(f"{source}: [gps] talker must be two upper-case letters, not "
+                            f"{talker!r}")
+    flight = SimpleNamespace(**{name.split(".")[1]: SimpleNamespace(**values[name])
+                                for name in SCHEMA if name.startswith("flight.")})
+    channels = {name: SimpleNamespace(**values[f"channels.{name}"]) for name in CHANNEL_NAMES}
+    return SurveyScenario(
+        source=source, name=scenario["name"], seed=scenario["seed"], start=scenario["start"],
+        clk_freq=scenario["clk_freq_hz"], max_frame=scenario["max_frame"],
+        site=SimpleNamespace(**values["site"]), recording=SimpleNamespace(**values["recording"]),
+        flight=flight, gps=SimpleNamespace(**values["gps"]), channels=channels,
+        errors=SimpleNamespace(**errors), faults=faults,
+        folder=None if folder is None else Path(folder))
+
+
+def loads_scenario(text, *, source="<scenario>", folder=None):
+    """A :class:`SurveyScenario` from TOML text (``source`` names it in errors)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ScenarioError(f"{source}: not valid TOML: {error}") from None
+    return scenario_from_dict(data, source=source, folder=folder)
+
+
+def default_scenario_path():
+    """The built-in default scenario, ``sim/stimulus/default.toml``."""
+    return Path(__file__).with_name("default.toml")
+
+
+def load_scenario(path=None):
+    """Read and check a scenario file (None: the built-in default)."""
+    path = default_scenario_path() if path is None else Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise ScenarioError(f"{path}: cannot read the scenario ({error.strerror or error})") \
+            from None
+    except UnicodeDecodeError:
+        raise ScenarioError(f"{path}: not a UTF-8 text file") from None
+    return loads_scenario(text, source=path.name, folder=path.parent)
