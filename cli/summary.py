@@ -162,6 +162,38 @@ def _frames(truth, counters):
     return lines, checks, table
 
 
+def _faults(truth, counters):
+    """The injected faults (truth) and the counters their frames land in: per channel and
+    cause, what the faults expect, the truth's total (the faults plus everything else that
+    drops frames there, such as the GPS's distractor sentences) and the gateware's."""
+    faults = truth.get("faults") or []
+    if not faults:
+        return [], {}
+    lines = ["Faults injected (truth) and the counters they land in"]
+    expected = {}
+    for fault in faults:
+        where = fault.get("channel") or "all"
+        expect = fault.get("expect")
+        what = (f"expect {expect['frames']} frame(s) dropped as {expect['cause']}"
+                if expect else "no frame dropped (expect: none)")
+        lines.append(f"  {fault.get('kind', '?'):13s} {where:7s} "
+                     f"{fault.get('start_s', float('nan')):7.2f}-"
+                     f"{fault.get('end_s', float('nan')):<8.2f} x{fault.get('count', '?')}: "
+                     f"{what}")
+        if expect and fault.get("channel"):
+            key = (fault["channel"], expect["cause"])
+            expected[key] = expected.get(key, 0) + int(expect["frames"])
+    table = {}
+    for (channel, cause), n in sorted(expected.items()):
+        total = (truth.get("frames") or {}).get(channel, {}).get(cause)
+        got = None if counters is None else (counters.get(channel) or {}).get(cause)
+        table[f"{channel}.{cause}"] = {"faults_expect": n, "truth": total, "gateware": got}
+        lines.append(f"  {channel + ' ' + cause:24s} faults expect {n}, truth {total}, "
+                     f"gateware {'-' if got is None else got}"
+                     + ("" if got is None or got == total else " *"))
+    return lines, table
+
+
 # -- The log file ---------------------------------------------------------------------------
 
 def _channel_of(frame):
@@ -340,6 +372,9 @@ def summarize(truth, counters, logs, run, *, calibration_error=None):
     lines, found, data["frames"] = _frames(truth, counters)
     blocks.append(lines)
     checks += found
+    lines, data["faults"] = _faults(truth, counters)
+    if lines:
+        blocks.append(lines)
     lines, found, data["log"] = _log(truth, logs or [])
     blocks.append(lines)
     checks += found

@@ -124,3 +124,27 @@ def test_bad_input(flown):
         summarize(truth, counters, [], "run")
     with pytest.raises(ValueError, match="counters must be a dict"):
         summarize(truth, [1], [], run)
+
+
+def test_faults_listed(flown):
+    _, _, image, truth, run, counters = flown
+    truth = copy.deepcopy(truth)
+    truth["frames"]["mag"]["checksum"] = 3
+    truth["frames"]["mag"]["kept"] -= 3
+    truth["faults"] = [
+        {"kind": "bad_checksum", "channel": "mag", "start_s": 30.0, "end_s": 50.0,
+         "count": 2, "expect": {"cause": "checksum", "frames": 2}},
+        {"kind": "dropped_bytes", "channel": "mag", "start_s": 60.0, "end_s": 80.0,
+         "count": 1, "expect": {"cause": "checksum", "frames": 1}},
+        {"kind": "card_busy", "channel": None, "start_s": 90.0, "end_s": 92.0, "count": 1,
+         "expect": None}]
+    summary = summarize(truth, counters, read_logs(image), run)
+    text = summary.text
+    assert "bad_checksum  mag       30.00-50.00    x2: expect 2 frame(s) dropped as checksum" \
+        in text
+    assert "card_busy     all" in text and "no frame dropped" in text
+    # The gateware (counters of a clean run) missed the three: marked, and frames.mag fails.
+    assert "mag checksum             faults expect 3, truth 3, gateware 0 *" in text
+    assert summary.data["faults"]["mag.checksum"] == {"faults_expect": 3, "truth": 3,
+                                                      "gateware": 0}
+    assert "frames.mag" in summary.failed
