@@ -450,12 +450,15 @@ def _static_series(run, truth):
         return None, "the truth gives no timestamp of t = 0 to place the phases in the log"
     midnight = start.replace(hour=0, minute=0, second=0, microsecond=0)
     t = run.t - (start - midnight).total_seconds()      # the log's seconds of day
+    found = []
     for phase in static:
         inside = (t >= phase["start_s"]) & (t <= phase["end_s"])
         if inside.sum() >= STATIC_MIN_SAMPLES:
             return run.vectors[inside, 0], f"phase {phase['name']}, {int(inside.sum())} samples"
-    return None, (f"the static phase holds fewer than {STATIC_MIN_SAMPLES} logged samples "
-                  "(too short for an Allan analysis)")
+        found.append(f"{phase['name']} {phase['start_s']:g}-{phase['end_s']:g} s: "
+                     f"{int(inside.sum())}")
+    return None, (f"logged samples in the static phases ({'; '.join(found)}) are fewer than "
+                  f"the {STATIC_MIN_SAMPLES} an Allan analysis needs")
 
 
 def paper_c(run, truth, out_dir, *, seed=0, quick=False):
