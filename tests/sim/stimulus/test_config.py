@@ -125,3 +125,18 @@ def test_defaults_apply_and_datetimes_are_utc():
     assert scenario.channels["mag"].baud == 115_200 and scenario.errors.preset == "paper_a"
     assert scenario.flight.calibration.headings_deg == [0.0, 90.0, 180.0, 270.0]
     assert scenario_from_dict({}).clk_freq == 1_843_200.0
+
+
+def test_every_key_is_documented():
+    """docs/scenarios.md names every table and key of the schema and every fault key."""
+    from pathlib import Path
+    from maglog.sim.stimulus.config import FAULT_SCHEMA
+    doc = (Path(__file__).resolve().parents[3] / "docs" / "scenarios.md").read_text()
+    for table, keys in SCHEMA.items():
+        assert f"[{table}]" in doc or f"[{table.split('.')[0]}.<" in doc, table
+        for name in keys:
+            assert f"`{name}`" in doc, f"[{table}] {name}"
+    for kind, keys in FAULT_SCHEMA.items():
+        assert f"`{kind}`" in doc
+        for name in keys:
+            assert f"`{name}`" in doc, f"{kind} {name}"
