@@ -416,9 +416,11 @@ static inline void tick(Harness* h) {
 
 }  // namespace
 
+#define EXPORT __attribute__((visibility("default")))
+
 extern "C" {
 
-void* fast_new(int channels, int row_bits, int col_bits, int bank_bits, int data_bits) {
+EXPORT void* fast_new(int channels, int row_bits, int col_bits, int bank_bits, int data_bits) {
     Harness* h = new Harness;
     h->context = new VerilatedContext;
     h->top = new Vmaglog_fast{h->context};
@@ -445,7 +447,7 @@ void* fast_new(int channels, int row_bits, int col_bits, int bank_bits, int data
     return h;
 }
 
-void fast_free(void* p) {
+EXPORT void fast_free(void* p) {
     Harness* h = (Harness*)p;
     h->top->final();
     delete h->top;
@@ -453,7 +455,7 @@ void fast_free(void* p) {
     delete h;
 }
 
-void fast_callbacks(void* p, command_cb c, block_cb b, event_cb e) {
+EXPORT void fast_callbacks(void* p, command_cb c, block_cb b, event_cb e) {
     Harness* h = (Harness*)p;
     h->on_command = c;
     h->on_block = b;
@@ -461,7 +463,7 @@ void fast_callbacks(void* p, command_cb c, block_cb b, event_cb e) {
 }
 
 // Queue `n` bytes on a channel's line: start cycles nondecreasing and after what is queued.
-int fast_uart_push(void* p, int channel, int n, const int64_t* starts, const uint8_t* values,
+EXPORT int fast_uart_push(void* p, int channel, int n, const int64_t* starts, const uint8_t* values,
                    const double* bit_cycles, const uint8_t* stops) {
     Harness* h = (Harness*)p;
     if (channel < 0 || channel >= h->channels) return -1;
@@ -473,16 +475,16 @@ int fast_uart_push(void* p, int channel, int n, const int64_t* starts, const uin
     return 0;
 }
 
-int fast_uart_queued(void* p, int channel) {
+EXPORT int fast_uart_queued(void* p, int channel) {
     return (int)((Harness*)p)->lines[channel].queue.size();
 }
 
-void fast_button(void* p, int64_t cycle, int level) {
+EXPORT void fast_button(void* p, int64_t cycle, int level) {
     ((Harness*)p)->button.emplace_back(cycle, level);
 }
 
 // Run `cycles` clock cycles. Returns 0, or -1 when a callback asked to stop.
-int fast_run(void* p, int64_t cycles) {
+EXPORT int fast_run(void* p, int64_t cycles) {
     Harness* h = (Harness*)p;
     for (int64_t i = 0; i < cycles; i++) {
         tick(h);
@@ -493,7 +495,7 @@ int fast_run(void* p, int64_t cycles) {
 
 // One Wishbone access; returns the cycles it took, or -1 (a callback stopped the run),
 // -2 (no acknowledgement within `limit` cycles). `*data` is the value written, or read.
-int fast_wishbone(void* p, int address, int write, uint32_t* data, int limit) {
+EXPORT int fast_wishbone(void* p, int address, int write, uint32_t* data, int limit) {
     Harness* h = (Harness*)p;
     Vmaglog_fast* t = h->top;
     h->wb_accesses++;
@@ -524,7 +526,7 @@ int fast_wishbone(void* p, int address, int write, uint32_t* data, int limit) {
 // Called from on_command: the card's response (nbits bits, first first; 0: none), sent
 // after `gap` released clocks; `busy` cycles of DAT0 busy after it (R1b); a block to send
 // after it (`data` 512 bytes or NULL) `read_delay` cycles after the response's end.
-void fast_sd_respond(void* p, int nbits, const uint8_t* bits, int gap, int64_t busy,
+EXPORT void fast_sd_respond(void* p, int nbits, const uint8_t* bits, int gap, int64_t busy,
                      const uint8_t* data, int64_t read_delay) {
     Harness* h = (Harness*)p;
     h->response.assign(bits, bits + nbits);
@@ -544,13 +546,13 @@ void fast_sd_respond(void* p, int nbits, const uint8_t* bits, int gap, int64_t b
 }
 
 // Whether the card takes write blocks now (it is in rcv).
-void fast_sd_receive(void* p, int enabled) {
+EXPORT void fast_sd_receive(void* p, int enabled) {
     ((Harness*)p)->rx_enabled = enabled != 0;
 }
 
 // Called from on_block: the CRC status token (3 bits, 0b010 accepted) after `gap` released
 // clocks, then `busy` cycles of DAT0 busy, then on_programmed.
-void fast_sd_token(void* p, int token, int gap, int64_t busy) {
+EXPORT void fast_sd_token(void* p, int token, int gap, int64_t busy) {
     Harness* h = (Harness*)p;
     h->token_bits = {0, (uint8_t)((token >> 2) & 1), (uint8_t)((token >> 1) & 1),
                      (uint8_t)(token & 1), 1};
@@ -560,10 +562,10 @@ void fast_sd_token(void* p, int token, int gap, int64_t busy) {
     if (gap <= 0) h->error("a CRC status token needs a gap of at least one clock");
 }
 
-int64_t fast_cycle(void* p) { return ((Harness*)p)->cycle; }
-int fast_led(void* p) { return ((Harness*)p)->top->led; }
+EXPORT int64_t fast_cycle(void* p) { return ((Harness*)p)->cycle; }
+EXPORT int fast_led(void* p) { return ((Harness*)p)->top->led; }
 
-void fast_stats(void* p, uint64_t* out) {
+EXPORT void fast_stats(void* p, uint64_t* out) {
     Harness* h = (Harness*)p;
     out[0] = h->sdram_commands;
     out[1] = h->sd_edges;
@@ -572,9 +574,9 @@ void fast_stats(void* p, uint64_t* out) {
     out[4] = h->wb_accesses;
 }
 
-int fast_error_count(void* p) { return (int)((Harness*)p)->errors.size(); }
+EXPORT int fast_error_count(void* p) { return (int)((Harness*)p)->errors.size(); }
 
-int fast_error(void* p, int index, char* buffer, int size) {
+EXPORT int fast_error(void* p, int index, char* buffer, int size) {
     Harness* h = (Harness*)p;
     if (index < 0 || index >= (int)h->errors.size() || size <= 0) return -1;
     std::strncpy(buffer, h->errors[index].c_str(), size - 1);
