@@ -1,7 +1,7 @@
 """Mutation run of ``maglog calibrate``: its counts as JSON.
 
 Runs the seeded inputs of ``tests/calib/mutants.py`` (card images, logs and option values
-mutated as a new user would meet them) through ``maglog.sim.cli.main`` in process, one
+mutated as a new user would meet them) through ``maglog.cli.main.main`` in process, one
 worker per core with a time limit per input, and writes the outcomes by class to
 ``bench/results/calib_mutation.json``: inputs, tracebacks, hangs, silent nonsense (the
 goal is 0, 0, 0), clean errors, usage errors, results with and without warnings, and every

@@ -1,5 +1,5 @@
 """A seeded mutation run of ``maglog calibrate``: card images, logs and option values
-changed as a new user would meet them, each run through ``maglog.sim.cli.main`` in
+changed as a new user would meet them, each run through ``maglog.cli.main.main`` in
 process, in worker processes (one per core) with an alarm per input, and classified.
 
 Outcomes (:data:`OUTCOMES`):
@@ -585,8 +585,8 @@ def _materialise(case, work, base):
 
 
 def run_case(case, base, time_limit=TIME_LIMIT):
-    """Run one input through ``maglog.sim.cli.main`` in this process; its outcome."""
-    from maglog.sim.cli import main
+    """Run one input through ``maglog.cli.main.main`` in this process; its outcome."""
+    from maglog.cli.main import main
     base = Path(base)
     work = Path(tempfile.mkdtemp(prefix=f"mutant{case.index}-"))
     here = os.getcwd()

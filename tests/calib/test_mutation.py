@@ -45,7 +45,7 @@ def test_long_mutation_run(fat_tools):
 def test_the_run_finds_a_traceback_a_hang_and_nonsense(tmp_path, monkeypatch):
     # The classifier itself: an exception escaping main, an input over the time limit, and
     # an exit 0 whose parameters.json holds NaN are each counted as what they are.
-    from maglog.sim import cli
+    from maglog.cli import main as cli
     case = mutants.Case(0, "log:values", "test", ["calibrate", "{work}/LOG00001.TXT"],
                         {"LOG00001.TXT": b"$ 49895.131,1249\r\n"})
     mutants._worker_init()

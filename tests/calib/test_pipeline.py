@@ -16,7 +16,7 @@ from maglog.calib import pipeline
 from maglog.calib.pipeline import (REFERENCE_RANGE_NT, SEED_RANGE, CalibrationError,
                                    ReportError, calibrate_card, check_output_dir,
                                    check_reference, check_seed, report_files, write_report)
-from maglog.sim.cli import main
+from maglog.cli.main import main
 from maglog.sim.scenario import make_flight
 
 # The calib tests' one card-image builder (tests are no package: the folder goes on the path).

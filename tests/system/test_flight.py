@@ -4,7 +4,7 @@ judged by fsck.fat, mtools, pyfatfs and calib.card, and `maglog calibrate` reduc
 
 import json
 
-from maglog.sim.cli import main
+from maglog.cli.main import main
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.logger import run_system
 from maglog.sim.scenario import make_flight

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from maglog.sim import cli
-from maglog.sim.cli import main
+from maglog.cli import main as cli
+from maglog.cli.main import main
 
 
 def test_hdl_verilog_writes_the_logger(tmp_path, capsys):
@@ -196,7 +196,7 @@ def test_unreadable_card_is_one_line(tmp_path, capsys):
 @pytest.mark.parametrize("what", ["verilog", "regmap"])
 def test_closed_standard_output(what):
     # The console script's own entry point, with file descriptor 1 closed.
-    code = "import sys; from maglog.sim.cli import _entry; sys.argv = ['maglog', 'hdl', %r]; _entry()"
+    code = "import sys; from maglog.cli.main import _entry; sys.argv = ['maglog', 'hdl', %r]; _entry()"
     result = subprocess.run(f"{sys.executable} -c \"{code % what}\" >&-", shell=True,
                             capture_output=False, stderr=subprocess.PIPE, text=True,
                             timeout=120)
