@@ -27,7 +27,6 @@ date, interpolated to the magnetometer samples and rotated into the body frame.
 
 from __future__ import annotations
 
-import datetime as _dt
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,10 +132,10 @@ class _Plan:
     def manoeuvre(self, seconds, heading, turn_s, roll, pitch, yaw):
         """Hover on ``heading``: turn onto it, then rolls, pitches and yaws."""
         self.turn_to(heading)
-        self.move(turn_s, (0.0, 0.0, 0.0)) if turn_s > 0 else None
+        if turn_s > 0:
+            self.move(turn_s, (0.0, 0.0, 0.0))
         third = (seconds - turn_s) / 3
-        for k, (extra, amplitude) in enumerate(((self.roll_extra, roll),
-                                                (self.pitch_extra, pitch))):
+        for extra, amplitude in ((self.roll_extra, roll), (self.pitch_extra, pitch)):
             sel, x = self._span(third)
             extra[sel] = amplitude * np.sin(2 * np.pi * 2 * x)       # two full swings
             self.now += third

@@ -11,7 +11,6 @@ import pytest
 from maglog.hw.frontend import divisor_for
 from maglog.hw.uart import UartRx
 from maglog.sim.amaranth_tb import collect_payloads, drive_line, run_simulation
-from maglog.sim.uart_line import segments_from_levels
 
 
 def _line(system, channel, start, stop):
