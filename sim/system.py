@@ -312,6 +312,12 @@ class SystemResult:
     wall_seconds: float = 0.0
     sdram_errors: list = field(default_factory=list)
     card_errors: list = field(default_factory=list)
+    #: The front end's frame counters at the end, ``{channel: {counter: n}}`` (None where
+    #: the backend does not read them).
+    counters: dict | None = None
+    #: The backend that ran, and its own figures (commands, blocks, accesses).
+    backend: str | None = None
+    stats: dict = field(default_factory=dict)
 
 
 class Timeline:

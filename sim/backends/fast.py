@@ -607,11 +607,8 @@ def run_system_fast(scenario, image, *, build_dir, settings=None, firmware=None,
             meter.show(harness.cycle, end="\n")
         counters = read_counters(lambda address: harness.access(address, False),
                                  logger.csr_memory_map, len(scenario.channels))
-        result = SystemResult(image=image, led=harness.led, seconds=until / clk,
-                              wall_seconds=wall, card_errors=harness.errors())
-        result.counters = counters
-        result.stats = harness.stats()
-        result.backend = "verilator-fast"
-        return result
+        return SystemResult(image=image, led=harness.led, seconds=until / clk,
+                            wall_seconds=wall, card_errors=harness.errors(),
+                            counters=counters, backend="verilator", stats=harness.stats())
     finally:
         harness.close()
