@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from ..scenario import Flight, _field_ned, _rotation, _smooth_noise
@@ -241,14 +242,19 @@ def _respond(commands, dyn):
     """Each axis of ``commands`` (n, 3: roll, pitch, heading; radians) through a
     second-order response with a rate limit (semi-implicit Euler at :data:`DT`)."""
     omega = 2 * np.pi * dyn.natural_hz
-    zeta = dyn.damping
     limit = np.radians([dyn.max_rate_deg_s, dyn.max_rate_deg_s, dyn.max_yaw_rate_deg_s])
+    return _second_order(np.ascontiguousarray(commands, dtype=np.float64),
+                         omega * omega * DT, 2 * dyn.damping * omega * DT, limit, DT)
+
+
+@numba.njit(cache=True)
+def _second_order(commands, k1, k2, limit, dt):
     out = np.empty_like(commands)
-    x = commands[0].copy()
-    v = np.zeros(3)
-    k1, k2 = omega * omega * DT, 2 * zeta * omega * DT
-    for i, cmd in enumerate(commands):
-        v = np.clip(v + k1 * (cmd - x) - k2 * v, -limit, limit)
-        x = x + v * DT
-        out[i] = x
+    for axis in range(commands.shape[1]):
+        x = commands[0, axis]
+        v = 0.0
+        for i in range(commands.shape[0]):
+            v = min(max(v + k1 * (commands[i, axis] - x) - k2 * v, -limit[axis]), limit[axis])
+            x += v * dt
+            out[i, axis] = x
     return out
