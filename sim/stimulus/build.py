@@ -295,9 +295,14 @@ def _windows(faults, channel_name, nominal):
 def _pieces(start, data, nominal, windows):
     """Split a frame sent from ``start`` at the nominal rate where its bytes enter and leave
     baud-error windows: ``[(data, baud or None, fault index or None)]``."""
-    if not windows:
-        return [(data, None, None)]
     per_byte = UART_FRAME_BITS / nominal
+    last = start + (len(data) - 1) * per_byte             # the last byte's start
+    touching = [w for w in windows if w[0] <= last and start < w[1]]
+    if not touching:
+        return [(data, None, None)]
+    ws, we, baud, fault = touching[0]
+    if len(touching) == 1 and ws <= start and last < we:
+        return [(data, baud, fault)]
     pieces = []
     for i in range(len(data)):
         t = start + i * per_byte
