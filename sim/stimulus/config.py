@@ -20,7 +20,7 @@ from types import SimpleNamespace
 
 __all__ = ["ScenarioError", "SurveyScenario", "Fault", "SCHEMA", "FAULT_SCHEMA",
            "CHANNEL_NAMES", "FAULT_KINDS", "default_scenario_path", "load_scenario",
-           "loads_scenario"]
+           "loads_scenario", "preset_names"]
 
 #: Channel names, in the logger's ``uart_rx`` order (FLIGHT_CHANNELS).
 CHANNEL_NAMES = ("mag", "gps", "cesium")
@@ -388,9 +388,19 @@ def default_scenario_path():
     return Path(__file__).with_name("default.toml")
 
 
+def preset_names():
+    """The built-in scenarios (``sim/stimulus/*.toml``), by name."""
+    return sorted(p.stem for p in Path(__file__).parent.glob("*.toml"))
+
+
 def load_scenario(path=None):
-    """Read and check a scenario file (None: the built-in default)."""
-    path = default_scenario_path() if path is None else Path(path)
+    """Read and check a scenario file (None: the built-in default; a built-in scenario's
+    name, e.g. ``"short"``, when no such file exists)."""
+    if path is None:
+        path = default_scenario_path()
+    elif not Path(path).exists() and str(path) in preset_names():
+        path = Path(__file__).with_name(f"{path}.toml")
+    path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as error:

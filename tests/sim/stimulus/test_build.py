@@ -135,3 +135,25 @@ def test_noise_floor_is_the_ideal_residual(default_stim):
     residual = np.linalg.norm(b @ k.T - c, axis=1) - np.interp(t_mag, t_ces, f_ces)
     floor = stim.truth["noise_floor_nT"]
     assert abs(np.sqrt(np.mean(residual ** 2)) - floor) < 0.05 * floor
+
+
+def test_built_in_scenarios():
+    """Each built-in scenario builds by name; every counter but the GPS distractors'
+    not_whitelisted is what its faults say, and the recording holds flushes."""
+    from maglog.sim.stimulus.config import preset_names
+    assert {"default", "short"} <= set(preset_names())
+    stim = load_scenario("short").build()
+    truth = stim.truth
+    assert truth["scenario"] == "short" and truth["until_s"] < 30
+    expected = {}
+    for fault in truth["faults"]:
+        if fault["expect"]:
+            key = (fault["channel"], fault["expect"]["cause"])
+            expected[key] = expected.get(key, 0) + fault["expect"]["frames"]
+    for name, counts in truth["frames"].items():
+        for cause in ("checksum", "not_whitelisted", "overlong", "bad_byte", "uart_error",
+                      "overflow"):
+            if (name, cause) != ("gps", "not_whitelisted"):
+                assert counts[cause] == expected.get((name, cause), 0), (name, cause)
+    frames = stim.system.recorded_frames()
+    assert sum(bool(FLUSHING_GGA.match(f)) for f in frames) >= 10
