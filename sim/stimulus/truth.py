@@ -118,7 +118,8 @@ def make_truth(stim, fault_records, withheld, errors):
         "reference": {"cesium_noise_nT": cesium.noise_nT,
                       "igrf_total_nT_mean": float(np.mean(flight.total))},
         "noise_floor_nT": noise_floor(k, q, flight.b_earth, errors.noise, cesium.noise_nT),
-        "flight": {"phases": [{"name": n, "start_s": float(s), "end_s": float(min(e, system.until))}
+        "flight": {"phases": [{"name": n, "start_s": round(float(s), 6),
+                               "end_s": round(float(min(e, system.until)), 6)}
                               for n, s, e in stim.track.phases if s < system.until],
                    "samples": int(flight.t.size), "mag_rate_hz": mag.rate_hz,
                    "cesium_rate_hz": cesium.rate_hz, "attitude_csv": "attitude.csv"},
