@@ -148,3 +148,26 @@ def test_faults_listed(flown):
     assert summary.data["faults"]["mag.checksum"] == {"faults_expect": 3, "truth": 3,
                                                       "gateware": 0}
     assert "frames.mag" in summary.failed
+
+
+def test_default_scenario_log_scores_clean(tmp_path):
+    """The default scenario's own expected log (what the truth says the card holds, before
+    any RTL): the calibration recovers the paper_a preset within the stated tolerances, the
+    residual is at the noise floor, and the summary says so."""
+    from maglog.calib.pipeline import calibrate_card
+    from maglog.sim.stimulus import load_scenario
+    stim = load_scenario(None).build()
+    stim.write_truth(tmp_path)
+    log = b"".join(stim.system.recorded_frames())
+    (tmp_path / "LOG00001.TXT").write_bytes(log)
+    run = calibrate_card(tmp_path / "LOG00001.TXT",
+                         attitude=tmp_path / stim.truth["flight"]["attitude_csv"])
+    counters = {ch: {cause: n for cause, n in counts.items()}
+                for ch, counts in stim.truth["frames"].items()}
+    summary = summarize(stim.truth, counters, [("LOG00001.TXT", log)], run)
+    assert summary.ok, summary.text
+    assert stim.truth["errors"]["preset"] == "paper_a"
+    ratio = summary.data["residual"]["ratio_after"]
+    assert RESIDUAL_RATIO[0] <= ratio <= RESIDUAL_RATIO[1]
+    assert "=> ALL CHECKS PASS" in summary.text
+    assert len(stim.truth["faults"]) >= 6 and "Faults injected" in summary.text
