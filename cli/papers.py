@@ -536,8 +536,8 @@ def paper_c(run, truth, out_dir, *, seed=0, quick=False):
              f"{cell('slope_regions.quantisation')} | "
              f"{cell('slope_regions.bias_instability')} |", "",
              f"Variance before → after: {variance[0]:.4g} → {variance[1]:.4g} (paper: "
-             "1.3717 → 0.0129). The filter (unity gain at DC) lowers the Allan curve only below its "
-             f"time constant ({(1 - gain) / gain / rate:.1f} s). The single-point reads take "
+             "1.3717 → 0.0129). The filter (unity gain at DC) lowers the Allan curve only "
+             f"below its time constant ({(1 - gain) / gain / rate:.1f} s). The single-point reads take "
              "Q at the first point (0.1 s) and B at the minimum, both where the filter acts, "
              "so the filter shows in them fully. Fitted only where its slope holds, the "
              f"quantisation noise is resolved in {resolved['quantisation'][0]} of {seeds} "
