@@ -372,6 +372,58 @@ def _cmd_calibrate(args):
     print(f"parameters: {paths['json']}")
 
 
+def _backend_choice(args):
+    from ..sim.runners.system import BackendUnavailable, fastest_rtl
+    if args.backend != "auto":
+        return args.backend
+    try:
+        return fastest_rtl()
+    except BackendUnavailable as error:
+        raise CliError(str(error)) from None
+
+
+def _cmd_simulate(args):
+    from .run import RunError, default_build_dir, load, simulate
+    out = Path(args.output)
+    if out.is_dir():
+        raise CliError(f"{out}: is a folder; give the card image's file name")
+    try:
+        stimulus = load(args.scenario)
+        result = simulate(stimulus, out, backend=_backend_choice(args),
+                          build_dir=args.build_dir or default_build_dir(),
+                          progress=not args.quiet)
+    except RunError as error:
+        raise CliError(str(error)) from None
+    truth = stimulus.truth["frames"]
+    rows = []
+    for name, counted in (result.counters or {}).items():
+        expected = truth.get(name, {})
+        rows.append([name] + [f"{counted[c]}" + ("" if counted[c] == expected.get(c) else
+                                                 f" (truth {expected.get(c)})")
+                              for c in ("kept", "checksum", "not_whitelisted", "overlong",
+                                        "bad_byte", "uart_error", "overflow")])
+    if rows:
+        print(_table(["channel", "kept", "checksum", "not_whitelisted", "overlong",
+                      "bad_byte", "uart_error", "overflow"], rows))
+    print(f"card image: {out}; truth: {out.parent / 'truth.json'}")
+
+
+def _cmd_run(args):
+    from .run import RunError, default_build_dir, main_job
+    try:
+        summary = main_job(args.scenario, args.out, backend=_backend_choice(args),
+                           build_dir=args.build_dir or default_build_dir(), seed=args.seed,
+                           quick_papers=args.quick_papers, progress=not args.quiet)
+    except RunError as error:
+        raise CliError(str(error)) from None
+    print(summary.text)
+    print(f"report: {summary.files['report']}")
+    print(f"papers: {summary.files['papers']}")
+    if not summary.ok:
+        raise CliError("the run does not match its scenario's truth: "
+                       + ", ".join(summary.failed))
+
+
 def _parser():
     from ..hw.frontend import DEFAULT_CHANNELS
     from ..sim.frontend_run import BACKENDS
@@ -454,6 +506,45 @@ def _parser():
     calibrate.add_argument("--out", default="build/calibration",
                            help="report folder (default: %(default)s)")
     calibrate.set_defaults(func=_cmd_calibrate)
+
+    from ..sim.runners.system import BACKENDS as SYSTEM_BACKENDS
+    backend_help = ("model (transaction level), amaranth, icarus, verilator (the fast C++ "
+                    "harness), verilator-cocotb, or auto: the fastest RTL simulator here "
+                    "(default: %(default)s)")
+    simulate = commands.add_parser(
+        "simulate", help="run a flight scenario through the whole logger to a card image")
+    simulate.add_argument("scenario", nargs="?", default=None,
+                          help="scenario TOML file (default: the built-in scenario; see "
+                               "docs/scenarios.md)")
+    simulate.add_argument("-o", "--output", required=True,
+                          help="card image to write (truth.json, attitude.csv and "
+                               "simulation.json go beside it)")
+    simulate.add_argument("--backend", choices=("auto",) + SYSTEM_BACKENDS, default="auto",
+                          help=backend_help)
+    simulate.add_argument("--build-dir", default=None,
+                          help="simulator builds, kept between runs (default: "
+                               "$MAGLOG_BUILD_DIR or build/sim)")
+    simulate.add_argument("--quiet", action="store_true", help="no progress line")
+    simulate.set_defaults(func=_cmd_simulate)
+
+    run = commands.add_parser(
+        "run", help="the main job: a scenario through the logger's RTL, the card calibrated "
+                    "and scored against the scenario's truth, with the papers' results")
+    run.add_argument("scenario", nargs="?", default=None,
+                     help="scenario TOML file (default: the built-in scenario)")
+    run.add_argument("-o", "--out", default="build/run",
+                     help="output folder (default: %(default)s)")
+    run.add_argument("--backend", choices=("auto",) + SYSTEM_BACKENDS, default="auto",
+                     help=backend_help)
+    run.add_argument("--build-dir", default=None,
+                     help="simulator builds, kept between runs (default: $MAGLOG_BUILD_DIR "
+                          "or build/sim)")
+    run.add_argument("--seed", type=_int_in(0, SEED_MAX), default=0,
+                     help=f"PSO and papers' seed, 0 to {SEED_MAX} (default: 0)")
+    run.add_argument("--quick-papers", action="store_true",
+                     help="small made-up scenarios for papers B and C (seconds, not minutes)")
+    run.add_argument("--quiet", action="store_true", help="no progress line")
+    run.set_defaults(func=_cmd_run)
 
     demo = commands.add_parser(
         "demo", help="push the built-in demo flight's serial streams through the front end")

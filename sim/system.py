@@ -318,6 +318,8 @@ class SystemResult:
     #: The backend that ran, and its own figures (commands, blocks, accesses).
     backend: str | None = None
     stats: dict = field(default_factory=dict)
+    #: What the backend could not model of the scenario.
+    notes: list = field(default_factory=list)
 
 
 class Timeline:

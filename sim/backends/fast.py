@@ -465,7 +465,6 @@ class _Feeder:
     the clock, so that a long flight never sits in the harness's queues at once."""
     harness: FastHarness
     scenario: SystemScenario
-    bit_cycles: list
     ahead_cycles: int
     _next: list = field(default_factory=list)
     _bursts: list = field(default_factory=list)
@@ -484,9 +483,11 @@ class _Feeder:
         clk = self.scenario.clk_freq
         for k, bursts in enumerate(self._bursts):
             starts, values, bits = [], [], []
-            bit = self.bit_cycles[k]
+            nominal = self.scenario.channels[k].baud
             while self._next[k] < len(bursts):
                 burst = bursts[self._next[k]]
+                # A burst off the nominal rate (a baud-error fault) keeps its own bit time.
+                bit = clk / (burst.baud or nominal)
                 first = round(burst.start * clk)
                 if first > horizon:
                     break
@@ -504,9 +505,14 @@ class _Progress:
     """A progress line on standard error: simulated seconds, frames sent, the real-time
     factor and the time left, every ``every_s`` simulated seconds."""
 
-    def __init__(self, clk_freq, until_cycle, feeder, stream, every_s=1.0):
+    def __init__(self, clk_freq, until_cycle, feeder, stream, every_s=None):
         self.clk_freq, self.until, self.feeder = clk_freq, until_cycle, feeder
         self.stream = stream
+        # A terminal gets one line redrawn every simulated second; a log file a line
+        # every tenth of the run.
+        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        if every_s is None:
+            every_s = 1.0 if self.tty else max(1.0, until_cycle / clk_freq / 10)
         self.step = max(1, round(every_s * clk_freq))
         self.start = time.perf_counter()
         self.next = self.step
@@ -517,7 +523,9 @@ class _Progress:
             self.show(cycle)
         return self.next - cycle
 
-    def show(self, cycle, end="\r"):
+    def show(self, cycle, end=None):
+        if end is None:
+            end = "\r" if self.tty else "\n"
         wall = time.perf_counter() - self.start
         simulated = cycle / self.clk_freq
         total = self.until / self.clk_freq
@@ -546,13 +554,12 @@ def read_counters(bus_access, memory_map, channels):
 
 def run_system_fast(scenario, image, *, build_dir, settings=None, firmware=None,
                     chip=MT48LC4M32B2, card_seed=0, card_options=None, ring_capacity=None,
-                    busy_spikes=(), bauds_actual=None, progress=None, log=None):
+                    busy_spikes=(), progress=None, log=None):
     """Run ``scenario`` (a :class:`~maglog.sim.system.SystemScenario`) on the fast
     harness until ``scenario.until``: the firmware (``firmware(bus, memory_map,
     sys_clock_hz)``, by default :class:`~maglog.sw.app.LoggerApp` with ``settings``), the
     card model holding ``image`` (changed in place; ``card_options`` go to
-    :class:`ModelCard`). ``bauds_actual``: the line rate per channel when it differs from
-    the gateware's nominal rate (a baud-error fault). ``progress``: a text stream for the
+    :class:`ModelCard`); ``busy_spikes``: see :class:`FastHarness`. ``progress``: a text stream for the
     progress line (None: quiet). Returns a :class:`SystemResult` whose ``counters`` are the
     front end's, read over the bus at the end."""
     if not isinstance(scenario, SystemScenario):
@@ -571,10 +578,7 @@ def run_system_fast(scenario, image, *, build_dir, settings=None, firmware=None,
     harness = FastHarness(library, channels=len(scenario.channels), clk_freq=clk,
                           chip=chip, card=card, busy_spikes=busy_spikes)
     try:
-        bauds = list(bauds_actual) if bauds_actual is not None else [
-            c.baud for c in scenario.channels]
-        feeder = _Feeder(harness, scenario, [clk / baud for baud in bauds],
-                         ahead_cycles=round(0.5 * clk))
+        feeder = _Feeder(harness, scenario, ahead_cycles=round(0.5 * clk))
         for press in scenario.presses:
             harness.press(round(press * clk), 1)
             harness.press(round((press + scenario.hold) * clk), 0)

@@ -1,0 +1,178 @@
+"""``maglog simulate`` and ``maglog run``: a scenario through the whole logger to a card
+image, and the main job (that card calibrated, scored against the scenario's truth, and
+reported beside the papers' results).
+
+Files a run leaves in its folder (``maglog run -o DIR``; ``maglog simulate -o CARD`` puts
+them beside the card image):
+
+``card.img``            the card (sparse), as the firmware left it at the scenario's end
+``truth.json``          the scenario's truth (frames per channel and cause, faults, error
+                        model, noise floor, phases), ``attitude.csv`` the attitude
+``simulation.json``     backend, clock, simulated and wall seconds, the front end's
+                        counters, the backend's own figures
+``report/``             (run) the calibration report, papers.md, PNGs, summary.json
+"""
+
+import json
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+
+__all__ = ["simulate", "main_job", "DEFAULT_CARD_BYTES", "DEFAULT_CLUSTER_BYTES"]
+
+#: The blank card each run starts from: 1 GiB, 4 KiB clusters (a sparse file; a few MB on
+#: disk), formatted with the scenario's seed as volume id (a reproducible image).
+DEFAULT_CARD_BYTES = 1 << 30
+DEFAULT_CLUSTER_BYTES = 4096
+
+
+class RunError(Exception):
+    """What the command line reports as ``maglog: error: ...``."""
+
+
+def _quiet_amaranth():
+    # amaranth-soc leaves unused action objects behind while it builds registers: noise
+    # for a user.
+    from amaranth.hdl import UnusedElaboratable
+    warnings.filterwarnings("ignore", category=UnusedElaboratable)
+
+
+def _say(text):
+    print(text, file=sys.stderr, flush=True)
+
+
+def load(path):
+    """The scenario at ``path`` (None: the built-in default), built; RunError if bad."""
+    from ..sim.stimulus.config import ScenarioError, load_scenario
+    try:
+        scenario = load_scenario(path)
+    except ScenarioError as error:
+        raise RunError(str(error)) from None
+    except OSError as error:
+        raise RunError(f"{path}: {error.strerror or error}") from None
+    try:
+        return scenario.build()
+    except ScenarioError as error:
+        raise RunError(str(error)) from None
+
+
+def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD_BYTES,
+             progress=True):
+    """Run a built scenario (a :class:`~maglog.sim.stimulus.build.Stimulus`) on
+    ``backend`` into a fresh card image at ``card_path``; write the truth and
+    simulation.json beside it. Returns the :class:`~maglog.sim.system.SystemResult`."""
+    from ..sim.models.card_image import CardImage
+    from ..sim.runners.system import BackendUnavailable, estimate_seconds, run_system
+    from ..sim.backends.fast import FastBuildError, FastSimulationError
+    from ..sw.fat32 import FatError, format_image
+    _quiet_amaranth()
+    card_path = Path(card_path)
+    folder = card_path.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    truth = stimulus.truth
+    try:
+        format_image(card_path, card_bytes, cluster_bytes=DEFAULT_CLUSTER_BYTES,
+                     volume_id=truth.get("seed", 0) + 0x4D470000)
+    except FatError as error:
+        raise RunError(str(error)) from None
+    image = CardImage.load(card_path)
+    stimulus.write_truth(folder)
+    system = stimulus.system
+    estimate = estimate_seconds(system, backend)
+    _say(f"simulating {system.until:.1f} s of flight at {system.clk_freq / 1e6:g} MHz on "
+         f"{backend}" + (f" (about {estimate / 60:.0f} min)" if estimate and estimate > 120
+                         else ""))
+    try:
+        result = run_system(system, image, backend=backend, build_dir=build_dir,
+                            busy_spikes=stimulus.card.get("busy_spikes", ()),
+                            progress=sys.stderr if progress else None, log=_say)
+    except (BackendUnavailable, FastBuildError, FastSimulationError, ValueError) as error:
+        raise RunError(str(error)) from None
+    image.save(card_path)
+    record = {"backend": result.backend, "clk_freq_hz": system.clk_freq,
+              "simulated_s": system.until, "wall_s": result.wall_seconds,
+              "real_time_factor": (system.until / result.wall_seconds
+                                   if result.wall_seconds else None),
+              "counters": result.counters, "stats": result.stats, "led": result.led,
+              "card_errors": result.card_errors, "sdram_errors": result.sdram_errors,
+              "notes": result.notes}
+    (folder / "simulation.json").write_text(json.dumps(record, indent=1) + "\n")
+    _say(f"card image: {card_path} ({result.wall_seconds:.1f} s for {system.until:.1f} s "
+         f"simulated: real-time factor {record['real_time_factor'] or 0:.2f})")
+    for problem in result.card_errors + result.sdram_errors:
+        _say(f"warning: device model: {problem}")
+    for note in result.notes:
+        _say(f"note: {note}")
+    return result
+
+
+def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers=False,
+             progress=True):
+    """The main job: scenario → logger RTL → card → calibration → summary and report.
+    Returns the :class:`~maglog.cli.summary.Summary` (printed by the caller)."""
+    from ..calib.card import CardError, read_logs
+    from ..calib.pipeline import CalibrationError, calibrate_card, write_report
+    from .papers import paper_results
+    from .summary import summarize
+    out = Path(out_dir)
+    started = time.perf_counter()
+    _say("[1/4] building the scenario")
+    stimulus = load(scenario_path)
+    _say(f"[2/4] the logger's RTL on {backend}")
+    card = out / "card.img"
+    result = simulate(stimulus, card, backend=backend, build_dir=build_dir,
+                      progress=progress)
+    _say("[3/4] calibrating the card's log")
+    run, failure = None, None
+    try:
+        logs = read_logs(card)
+    except CardError as error:
+        raise RunError(f"{card}: {error}") from None
+    try:
+        run = calibrate_card(card, ref="cesium", method="pso", seed=seed,
+                             attitude=out / stimulus.truth["flight"]["attitude_csv"])
+    except (CardError, CalibrationError) as error:
+        failure = error
+    _say("[4/4] report")
+    report = out / "report"
+    if run is not None:
+        try:
+            paths = write_report(run, report)
+        except CalibrationError as error:
+            raise RunError(str(error)) from None
+    else:
+        report.mkdir(parents=True, exist_ok=True)
+        paths = {}
+    papers = paper_results(run, stimulus.truth, report, seed=seed, quick=quick_papers)
+    summary = summarize(stimulus.truth, result.counters, logs, run,
+                        calibration_error=failure)
+    record = summary.as_dict()
+    record["papers"] = papers.as_dict()
+    record["simulation"] = {"backend": result.backend, "wall_s": result.wall_seconds,
+                            "simulated_s": stimulus.system.until}
+    record["wall_s"] = time.perf_counter() - started
+    (report / "summary.json").write_text(json.dumps(record, indent=1, default=str) + "\n")
+    (report / "summary.txt").write_text(summary.text + "\n")
+    if "markdown" in paths:
+        _link_papers(Path(paths["markdown"]), report / "papers.md")
+    summary.files = {"card": card, "report": paths.get("markdown", report / "papers.md"),
+                     "papers": report / "papers.md", "summary": report / "summary.json"}
+    return summary
+
+
+def _link_papers(report_md, papers_md):
+    """Point the calibration report at the papers' page."""
+    if papers_md.exists():
+        text = report_md.read_text()
+        if "papers.md" not in text:
+            report_md.write_text(text.rstrip() + "\n\n## The papers' results beside ours\n\n"
+                                 "See [papers.md](papers.md).\n")
+
+
+def default_build_dir():
+    """Where simulator builds are kept between runs: ``$MAGLOG_BUILD_DIR`` or
+    ``build/sim`` under the current folder."""
+    return Path(os.environ.get("MAGLOG_BUILD_DIR", "build/sim"))

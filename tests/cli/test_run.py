@@ -1,0 +1,100 @@
+"""``maglog simulate`` and ``maglog run``: a scenario through the logger to a card, scored
+against the scenario's own truth."""
+
+import json
+import re
+
+import pytest
+
+from maglog.cli.main import main
+from maglog.sim.stimulus.config import default_scenario_path
+
+
+def _without_line_faults():
+    """The default scenario without its baud-error faults: the model backend times bytes
+    at the nominal rate, so only then must it agree with the truth to the frame."""
+    text = default_scenario_path().read_text()
+    return re.sub(r"\[\[faults\.baud_error\]\][^\[]*", "", text)
+
+
+def test_run_on_the_model_scores_itself(tmp_path, capsys):
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(_without_line_faults())
+    out = tmp_path / "run"
+    status = main(["run", str(scenario), "--backend", "model", "-o", str(out),
+                   "--quick-papers", "--quiet"])
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    assert "=> FAILED" not in printed
+    for check in ("frames.mag", "frames.gps", "frames.cesium", "log", "residual",
+                  "parameters"):
+        assert re.search(rf"PASS {re.escape(check)}\b", printed), check
+    summary = json.loads((out / "report" / "summary.json").read_text())
+    assert summary["ok"] is True
+    assert summary["simulation"]["backend"] == "model"
+    truth = json.loads((out / "truth.json").read_text())
+    counters = json.loads((out / "simulation.json").read_text())["counters"]
+    assert counters == {name: {cause: truth["frames"][name][cause] for cause in counted}
+                        for name, counted in counters.items()}
+    for name in ("card.img", "attitude.csv", "report/report.md", "report/papers.md"):
+        assert (out / name).is_file(), name
+
+
+def test_run_says_when_the_card_differs_from_the_truth(tmp_path, capsys):
+    """The default scenario's cesium line runs 10 % slow for 0.3 s: the model, which
+    times bytes at the nominal rate, keeps frames the gateware drops as UART errors; the
+    summary marks it, and the exit status says so."""
+    status = main(["run", "--backend", "model", "-o", str(tmp_path / "run"),
+                   "--quick-papers", "--quiet"])
+    captured = capsys.readouterr()
+    assert status == 1
+    assert "FAIL frames.cesium" in captured.out
+    assert "does not match its scenario's truth: frames.cesium, log" in captured.err
+    assert "the model receives every byte intact" in captured.err
+
+
+def test_simulate_rejects_a_bad_scenario_in_one_line(tmp_path, capsys):
+    scenario = tmp_path / "bad.toml"
+    scenario.write_text(default_scenario_path().read_text().replace(
+        "[flight.takeoff]\nseconds = 10.0", "[flight.takeoff]\nseconds = -3.0"))
+    status = main(["simulate", str(scenario), "-o", str(tmp_path / "card.img"),
+                   "--backend", "model"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 1
+    assert len(err) == 1 and err[0].startswith("maglog: error: ")
+    assert "bad.toml" in err[0] and "takeoff" in err[0] and "seconds" in err[0]
+    assert not (tmp_path / "card.img").exists()
+
+
+def test_simulate_refuses_a_folder_as_the_card(tmp_path, capsys):
+    status = main(["simulate", "-o", str(tmp_path), "--backend", "model"])
+    assert status == 1
+    assert "is a folder" in capsys.readouterr().err
+
+
+def test_simulate_on_the_model_writes_card_truth_and_counts(tmp_path, capsys):
+    card = tmp_path / "out" / "flight.img"
+    status = main(["simulate", "-o", str(card), "--backend", "model", "--quiet"])
+    printed = capsys.readouterr().out
+    assert status == 0
+    assert card.is_file() and (card.parent / "truth.json").is_file()
+    record = json.loads((card.parent / "simulation.json").read_text())
+    assert record["backend"] == "model" and record["simulated_s"] > 100
+    # The GPS line's counts agree with the truth (its 1.5 % fault is within the UART's
+    # tolerance); the table says where the model and the truth part.
+    assert re.search(r"^gps\s+\d+\s", printed, re.MULTILINE)
+    assert "(truth" in printed
+
+
+@pytest.mark.slow
+def test_main_job_on_verilator_matches_the_truth(tmp_path, capsys, external):
+    """The README's main command: the default scenario through the logger's RTL (the fast
+    harness), every check of the summary passing."""
+    external.simulator("verilator")
+    external.tool("c++", "the fast harness is C++")
+    status = main(["run", "--backend", "verilator", "-o", str(tmp_path / "run"),
+                   "--quiet"])
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    summary = json.loads((tmp_path / "run" / "report" / "summary.json").read_text())
+    assert summary["ok"] is True
