@@ -1,11 +1,15 @@
-# The two commands of the README: `make demo` and `make test`. Both set everything up first.
+# The two commands of the README: `make run` (the main job) and `make test`. Both set
+# everything up first.
 VENV ?= .venv
 PYTEST_ARGS ?=
 
-.PHONY: setup demo test test-slow bench-peers bench-calib clean
+.PHONY: setup run demo test test-slow bench-peers bench-calib clean
 
 setup:
 	@VENV=$(VENV) ./scripts/setup.sh
+
+run: setup
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VENV)/bin/maglog run
 
 demo: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VENV)/bin/maglog demo
