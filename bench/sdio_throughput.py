@@ -25,10 +25,10 @@ from _machine import load, packages, write_report
 
 from maglog.hw.arch import sd as arch
 from maglog.hw.sdio.host import SdioHost
-from maglog.sim.amaranth_tb import run_simulation
+from maglog.sim.backends.amaranth import run_simulation
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.sdcard import SdCard
-from maglog.sim.sdio_amaranth import CsrBus, StreamBlockPort, run_card
+from maglog.sim.backends.amaranth import CsrBus, StreamBlockPort, run_card
 from maglog.sw.regmap import RegisterMap
 from maglog.sw.sdcard import SdCardDriver
 

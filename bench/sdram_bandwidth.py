@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import load, packages, write_report
 
 from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
-from maglog.sim.sdram_amaranth import run_requests
+from maglog.sim.backends.amaranth import run_requests
 
 BENCH_DIR = Path(__file__).resolve().parent
 DEFAULT_OUTPUT = BENCH_DIR / "results" / "sdram_bandwidth.json"

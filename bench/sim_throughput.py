@@ -2,7 +2,7 @@
 
 One `$PMAG1` channel (``FrontEnd`` with a single PMAG channel: UART receiver, frame filter
 with its FIFO, arbiter) is run through the project's own runner,
-:class:`maglog.sim.frontend_run.FrontEndBench`, on a stream of valid ``$PMAG1`` sentences
+:class:`maglog.sim.runners.frontend.FrontEndBench`, on a stream of valid ``$PMAG1`` sentences
 sent back to back at divisor 1 (16 clock cycles per bit). Every kept frame is checked
 against the sent sentences, so a fast but wrong run does not count.
 
@@ -27,8 +27,8 @@ from pathlib import Path
 from maglog.hw.arch import uart as arch_uart
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
-from maglog.sim.frontend_run import BACKENDS, CLOCK_NS, ChannelStimulus, FrontEndBench
-from maglog.sim.sentences import pmag1
+from maglog.sim.runners.frontend import BACKENDS, CLOCK_NS, ChannelStimulus, FrontEndBench
+from maglog.sim.stimulus.sentences import pmag1
 
 # The helper beside this script: no __pycache__ in the tree for it.
 sys.dont_write_bytecode = True
@@ -145,7 +145,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(
         description="Clock cycles per second of one $PMAG1 channel (UART receiver, frame "
                     "filter, FIFO, arbiter) on the Amaranth simulator, cocotb+Icarus and "
-                    "cocotb+Verilator, through maglog.sim.frontend_run.FrontEndBench.")
+                    "cocotb+Verilator, through maglog.sim.runners.frontend.FrontEndBench.")
     parser.add_argument("--backends", nargs="+", choices=BACKENDS, default=list(BACKENDS),
                         help="backends to measure (default: all)")
     parser.add_argument("--target-seconds", type=float, default=10.0,

@@ -47,8 +47,8 @@ from maglog.calib.card import read_logs
 from maglog.hw.arch import fat32 as arch
 from maglog.sim.models.card_image import TracingImage
 from maglog.sim.models.logger import LoggerModel
-from maglog.sim.scenario import make_flight
-from maglog.sim.system import flight_scenario
+from maglog.sim.stimulus.scenario import make_flight
+from maglog.sim.stimulus.system import flight_scenario
 from maglog.sw.app import AppSettings, LoggerApp
 from maglog.sw.fat32 import ImageFile, Volume, format_image
 

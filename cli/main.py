@@ -206,9 +206,9 @@ def _table(header, rows):
 
 def _cmd_demo(args):
     from ..hw.frontend import DEFAULT_CHANNELS, generate_verilog
-    from ..sim.frontend_run import ChannelStimulus, FrontEndBench, _drain_cycles
+    from ..sim.runners.frontend import ChannelStimulus, FrontEndBench, _drain_cycles
     from ..sim.reference import Kind, reference_filter
-    from ..sim.streams import demo_streams
+    from ..sim.stimulus.streams import demo_streams
 
     out = _out_dir(args.out)
     channels = DEFAULT_CHANNELS
@@ -426,7 +426,7 @@ def _cmd_run(args):
 
 def _parser():
     from ..hw.frontend import DEFAULT_CHANNELS
-    from ..sim.frontend_run import BACKENDS
+    from ..sim.runners.frontend import BACKENDS
 
     parser = _Parser(
         prog="maglog", description="UAV geomagnetic survey logger: gateware, simulation, "

@@ -30,7 +30,7 @@ from ..calib.ellipsoid import fit_ellipsoid
 from ..calib.heading import declination, tilt_compensated_heading, wrap_degrees
 from ..calib.noise import BIAS_INSTABILITY_FACTOR, allan_deviation, kalman_filter, \
     simulate_noise
-from ..sim.scenario import DEFAULT_ERRORS, ErrorModel, make_flight
+from ..sim.stimulus.scenario import DEFAULT_ERRORS, ErrorModel, make_flight
 from .summary import recovered_kc
 
 
@@ -329,7 +329,7 @@ def paper_b(truth, out_dir, *, seed=0, quick=False):
                        "fits": fits, "trials": trials, "claim_holds": holds})
     source = "the scenario's A, b" if "A" in errors else "the project's default error model"
     lines = ["## Paper B: mean heading error against samples per octant (their Fig. 5)", "",
-             f"Flights made for it (sim.scenario.make_flight, seed {seed}): samples taken by "
+             f"Flights made for it (sim.stimulus.scenario.make_flight, seed {seed}): samples taken by "
              "the paper's octant strategy (each octant about the running centroid takes at "
              "most n, fit when all eight are full) from a tumbling flight (full sphere, "
              f"{B_RATE_HZ:g} Hz), an algebraic ellipsoid fit (calib.ellipsoid, gated on the "

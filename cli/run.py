@@ -63,7 +63,7 @@ def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD
              progress=True):
     """Run a built scenario (a :class:`~maglog.sim.stimulus.build.Stimulus`) on
     ``backend`` into a fresh card image at ``card_path``; write the truth and
-    simulation.json beside it. Returns the :class:`~maglog.sim.system.SystemResult`."""
+    simulation.json beside it. Returns the :class:`~maglog.sim.runners.result.SystemResult`."""
     from ..sim.models.card_image import CardImage
     from ..sim.runners.system import BackendUnavailable, estimate_seconds, run_system
     from ..sim.backends.fast import FastBuildError, FastSimulationError

@@ -1,7 +1,7 @@
 """The firmware's view of the hardware: asynchronous register access and block data.
 
 Firmware is written once against these interfaces. Backends implement them: the Amaranth
-simulator (:mod:`maglog.sim.sdio_amaranth`), cocotb (:mod:`maglog.sim.cocotb_sdio`) and the
+simulator (:mod:`maglog.sim.backends.amaranth`), cocotb (:mod:`maglog.sim.backends.cocotb_sdio`) and the
 transaction-level model of the logger (:mod:`maglog.sim.models.logger`).
 
 Two exceptions end the firmware from outside; they derive from :class:`BaseException` so

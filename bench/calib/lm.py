@@ -1,7 +1,7 @@
 """The scalar calibration's polish: the hand-written Levenberg-Marquardt maglog had against
 ``scipy.optimize.least_squares`` (MINPACK's "lm", and the bounded "trf").
 
-On the project's cases -- 2,000 samples of sim.scenario flights with full-sphere, UAV-like
+On the project's cases -- 2,000 samples of sim.stimulus.scenario flights with full-sphere, UAV-like
 (±30°) and near-planar (±5°) attitude coverage -- each polish starts from the isotropic
 identity (``calibrate_scalar(method="lm")``) and from the swarm's best (the PSO + polish
 path), with the box calib.scalar uses. Recorded per case and start: the best-of-N time,
@@ -30,7 +30,7 @@ sys.path.insert(0, str(BENCH))
 from _machine import load, packages, write_report
 
 from maglog.calib import _pso, scalar
-from maglog.sim.scenario import COVERAGES, make_flight
+from maglog.sim.stimulus.scenario import COVERAGES, make_flight
 
 DEFAULT_OUTPUT = BENCH / "results" / "calib_lm.json"
 

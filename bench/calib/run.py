@@ -1,6 +1,6 @@
 """Calibration benchmark: accuracy against the noise floor, speed against peers.
 
-On seeded synthetic flights (sim.scenario) with full-sphere, UAV-like (±30°) and
+On seeded synthetic flights (sim.stimulus.scenario) with full-sphere, UAV-like (±30°) and
 near-planar (±5°) attitude coverage at noise 5, 20 and 100 nT:
 
 - residual RMS of the total field as a ratio to the noise floor (the true parameters' own
@@ -50,7 +50,7 @@ from _machine import load, packages, write_report
 from maglog.calib import _pso
 from maglog.calib.ellipsoid import fit_ellipsoid
 from maglog.calib.scalar import apply_scalar, calibrate_scalar
-from maglog.sim.scenario import COVERAGES, ErrorModel, make_flight, make_survey
+from maglog.sim.stimulus.scenario import COVERAGES, ErrorModel, make_flight, make_survey
 
 DEFAULT_OUTPUT = BENCH / "results" / "calib.json"
 PEERS_PYTHON = Path(os.environ.get("MAGLOG_PEERS_PYTHON",

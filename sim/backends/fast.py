@@ -41,7 +41,8 @@ from ...sw.bus import RegisterBus
 from ...sw.regmap import RegisterMap
 from ..models.logger_sd import ModelCard, crc7
 from ..reference import COUNTER_NAMES
-from ..system import UART_FRAME_BITS, SystemResult, SystemScenario
+from ..runners.result import SystemResult
+from ..stimulus.system import UART_FRAME_BITS, SystemScenario
 
 
 __all__ = ["FastBuildError", "FastSimulationError", "fast_wrapper", "build_harness",
@@ -154,7 +155,7 @@ def build_harness(logger, chip, build_dir, *, log=None):
     built under ``build_dir`` once per design and harness source (the folder is named
     after their hash). Returns its path. Raises FastBuildError saying what failed."""
     from ...hw.top import generate_verilog
-    from ..cocotb_run import (simulator_environment, verilator_bin_dir,
+    from .cocotb import (simulator_environment, verilator_bin_dir,
                                   verilator_waiver_args)
     verilog = generate_verilog(logger)
     address_bits = len(logger.bus.adr)
@@ -555,7 +556,7 @@ def read_counters(bus_access, memory_map, channels):
 def run_system_fast(scenario, image, *, build_dir, settings=None, firmware=None,
                     chip=MT48LC4M32B2, card_seed=0, card_options=None, ring_capacity=None,
                     busy_spikes=(), progress=None, log=None):
-    """Run ``scenario`` (a :class:`~maglog.sim.system.SystemScenario`) on the fast
+    """Run ``scenario`` (a :class:`~maglog.sim.stimulus.system.SystemScenario`) on the fast
     harness until ``scenario.until``: the firmware (``firmware(bus, memory_map,
     sys_clock_hz)``, by default :class:`~maglog.sw.app.LoggerApp` with ``settings``), the
     card model holding ``image`` (changed in place; ``card_options`` go to

@@ -54,7 +54,7 @@ from ...hw.top import GPS_CHANNEL, Logger
 from ...sw.bus import BusTimeout, HardwareReset, PowerCut, RegisterBus
 from ...sw.regmap import RegisterMap
 from .logger_frontend import ChannelLine, parse_zda
-from ..system import SystemResult
+from ..runners.result import SystemResult
 from .logger_sd import ModelCard
 from .logger_soc import SocPeripherals
 from .logger_storage import StoragePath
@@ -655,10 +655,10 @@ class LoggerModel(SocPeripherals):
 
 
 def run_system(scenario, firmware, image, *, card_seed=0, ring_capacity=None, **card_options):
-    """Run a :class:`~maglog.sim.system.SystemScenario` on the model, as
-    :func:`maglog.sim.system_amaranth.run_system` runs it on the gateware: ``firmware(bus,
+    """Run a :class:`~maglog.sim.stimulus.system.SystemScenario` on the model, as
+    :func:`maglog.sim.backends.amaranth.run_system` runs it on the gateware: ``firmware(bus,
     memory_map, sys_clock_hz)`` until ``scenario.until``, the card holding ``image``
-    (changed in place). Returns a :class:`~maglog.sim.system.SystemResult`."""
+    (changed in place). Returns a :class:`~maglog.sim.runners.result.SystemResult`."""
     model = LoggerModel(image, clk_freq=scenario.clk_freq, channels=scenario.channels,
                         ring_capacity=ring_capacity, max_frame=scenario.max_frame,
                         debounce_s=scenario.debounce_s, seed=card_seed, **card_options)

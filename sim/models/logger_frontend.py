@@ -4,7 +4,7 @@ Each channel's line carries bytes back to back from the start of each burst, one
 bit times (8N1); the receiver has a byte at the middle of its stop bit
 (:data:`RECEIVED_BITS` after its start bit begins, as hw/uart.py's UartRx decides it). What
 the gateware's receiver and frame filter make of the bytes comes from the reference filter
-(sim/reference.py): the frames it keeps and its counters. This module places every decision
+(sim/reference/): the frames it keeps and its counters. This module places every decision
 in time: a kept frame at its line end, a dropped candidate at the byte on which the rules
 drop it (the byte-by-byte reading of docs/frame-rules.md, found by feeding the candidate to
 a fresh reference filter one byte at a time). A candidate still open when the line goes

@@ -23,7 +23,8 @@ import time
 from pathlib import Path
 
 from ...hw.arch.sdram import MT48LC4M32B2
-from ..system import SystemResult, SystemScenario
+from ..stimulus.system import SystemScenario
+from .result import SystemResult
 
 
 __all__ = ["BACKENDS", "RTL_BACKENDS", "BackendUnavailable", "available", "fastest_rtl",
@@ -44,7 +45,7 @@ class BackendUnavailable(RuntimeError):
 
 def _missing(backend):
     """Why ``backend`` cannot run here, or None."""
-    from ..cocotb_run import verilator_bin_dir
+    from ..backends.cocotb import verilator_bin_dir
     if backend in ("model", "amaranth"):
         return None
     if backend == "icarus":
@@ -87,12 +88,12 @@ def run_system(scenario, image, *, backend, build_dir="build/sim", settings=None
     """Run ``scenario`` on ``backend`` with the application firmware (``settings``: an
     :class:`~maglog.sw.app.AppSettings`), the card model holding ``image`` (a
     :class:`~maglog.sim.models.card_image.CardImage`, changed in place). Returns a
-    :class:`~maglog.sim.system.SystemResult` with ``backend`` set and, where the backend
+    :class:`~maglog.sim.runners.result.SystemResult` with ``backend`` set and, where the backend
     reads them, the front end's ``counters``.
 
     ``busy_spikes`` (card programming slowed in time windows) are modelled by the
     ``verilator`` and ``model`` backends and refused by the others. Bursts off their
-    channel's nominal rate (:attr:`~maglog.sim.system.Burst.baud`) run at that rate on
+    channel's nominal rate (:attr:`~maglog.sim.stimulus.system.Burst.baud`) run at that rate on
     every RTL backend; the model feeds their bytes without line timing, and says so in
     the result's ``notes``."""
     from ...sw.app import AppSettings, LoggerApp
@@ -121,10 +122,10 @@ def run_system(scenario, image, *, backend, build_dir="build/sim", settings=None
         result = _run_model(scenario, firmware, image, card_seed=card_seed,
                             card_options=card_options, busy_spikes=busy_spikes)
     elif backend == "amaranth":
-        from ..system_amaranth import run_system as run_amaranth
+        from ..backends.amaranth import run_system as run_amaranth
         result = run_amaranth(scenario, firmware, image, chip=chip, card_seed=card_seed)
     else:
-        from ..system_cocotb import run_system_cocotb
+        from ..backends.cocotb_system import run_system_cocotb
         simulator = "verilator" if backend == "verilator-cocotb" else "icarus"
         result = run_system_cocotb(scenario, image, backend=simulator,
                                    build_dir=build_dir / f"cocotb-{simulator}",

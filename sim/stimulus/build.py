@@ -1,6 +1,6 @@
 """From a :class:`~maglog.sim.stimulus.config.SurveyScenario` to the logger's inputs and the
 truth: the sensor frames per channel, the button presses, the faults, their places on the
-lines (:class:`~maglog.sim.system.Timeline`) and the :class:`Stimulus` that holds them.
+lines (:class:`~maglog.sim.stimulus.system.Timeline`) and the :class:`Stimulus` that holds them.
 
 Order of work (each step seeded from the scenario's seed, one generator per purpose):
 
@@ -15,7 +15,7 @@ Order of work (each step seeded from the scenario's seed, one generator per purp
    content is the frames that end between the presses whatever the firmware's reaction time;
 4. the frame faults (noise bursts, dropped bytes, bad checksums) on frames the filter would
    otherwise keep, chosen with the fault generator among those of the interval;
-5. the frames placed on their lines in time order (:class:`~maglog.sim.system.Timeline`:
+5. the frames placed on their lines in time order (:class:`~maglog.sim.stimulus.system.Timeline`:
    no two kept frames of different channels end within MIN_END_GAP_S); a frame with bytes
    inside a baud-error window is split there, the bytes inside sent at the line's actual
    rate, with two nominal bit times of idle after them;
@@ -34,9 +34,9 @@ import numpy as np
 
 from ...hw.frame_filter import ChannelKind
 from ...hw.frontend import ChannelConfig, divisor_for
-from .. import sentences
-from ..captures import load_capture, shared_data_dir
-from ..system import UART_FRAME_BITS, SystemScenario, Timeline
+from . import sentences
+from .captures import load_capture, shared_data_dir
+from .system import UART_FRAME_BITS, SystemScenario, Timeline
 from . import errors as _errors
 from .config import CHANNEL_NAMES
 from .flight import make_flight

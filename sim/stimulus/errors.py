@@ -1,10 +1,10 @@
 """Magnetometer error-model presets: ``default``, ``paper_a`` and ``none``.
 
 The error model is DESIGN.md's, ``B̂ = C_NO C_SF (I + C_SI)(B_e + B_HI) + b0 + w``
-(:class:`maglog.sim.scenario.ErrorModel`), so ``B̂ = A B_e + b + w`` with
+(:class:`maglog.sim.stimulus.scenario.ErrorModel`), so ``B̂ = A B_e + b + w`` with
 ``A = C_NO C_SF (I + C_SI)`` and ``b = A B_HI + b0`` (paper A, eq. 1-5).
 
-- ``default``: :data:`maglog.sim.scenario.DEFAULT_ERRORS`, this project's representative
+- ``default``: :data:`maglog.sim.stimulus.scenario.DEFAULT_ERRORS`, this project's representative
   values.
 - ``none``: an ideal sensor (A = I, b = 0) with its white noise only.
 - ``paper_a``: built from paper A's Table 1 (PAPERS.md, section A).
@@ -43,7 +43,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..scenario import DEFAULT_ERRORS, ErrorModel
+from .scenario import DEFAULT_ERRORS, ErrorModel
 
 __all__ = ["PAPER_A_P", "PAPER_A_O", "PRESETS", "preset", "from_forward", "forward", "c_no"]
 

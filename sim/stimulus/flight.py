@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from ..scenario import Flight, _field_ned, _rotation, _smooth_noise
+from .scenario import Flight, _field_ned, _rotation, _smooth_noise
 
 __all__ = ["Track", "make_flight", "DT", "GRAVITY"]
 

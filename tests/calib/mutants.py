@@ -91,7 +91,7 @@ class Case:
 def make_base(folder, tools):
     """Logs, an attitude file and (with ``tools``) a card image the mutants start from;
     returns facts about them (image regions) for the generator."""
-    from maglog.sim.scenario import make_flight
+    from maglog.sim.stimulus.scenario import make_flight
     folder = Path(folder)
     uav = make_flight(coverage="uav", seconds=20, seed=3)
     full = make_flight(coverage="full", seconds=20, seed=4)

@@ -9,7 +9,7 @@ from maglog.calib.heading import (align_heading, declination, fit_circle, straig
                                   tilt_compensated_heading, true_heading)
 from maglog.calib.logparse import parse_log
 from maglog.calib.scalar import apply_scalar, calibrate_scalar
-from maglog.sim.scenario import ErrorModel, make_survey
+from maglog.sim.stimulus.scenario import ErrorModel, make_survey
 
 
 def body_field(field_ned, heading, pitch, roll):

@@ -1,4 +1,4 @@
-"""Tests for maglog.calib.logparse: synthetic logs built with maglog.sim.sentences, with
+"""Tests for maglog.calib.logparse: synthetic logs built with maglog.sim.stimulus.sentences, with
 known arrival times, and one test per kind of bad line and per error path."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 
 from maglog.calib import logparse
 from maglog.calib.logparse import BAD_REASONS, SEQ_MODULUS, ParsedLog, parse_log, to_arrays
-from maglog.sim.sentences import (
+from maglog.sim.stimulus.sentences import (
     CRLF,
     LF,
     cesium,

@@ -17,7 +17,7 @@ from maglog.calib.pipeline import (REFERENCE_RANGE_NT, SEED_RANGE, CalibrationEr
                                    ReportError, calibrate_card, check_output_dir,
                                    check_reference, check_seed, report_files, write_report)
 from maglog.cli.main import main
-from maglog.sim.scenario import make_flight
+from maglog.sim.stimulus.scenario import make_flight
 
 # The calib tests' one card-image builder (tests are no package: the folder goes on the path).
 sys.path.insert(0, str(Path(__file__).parent))
@@ -88,7 +88,7 @@ def test_errors_are_clear(fat_tools, tmp_path, capsys):
 def survey(tmp_path_factory):
     """A survey flight (calibration manoeuvre, then six lines in a wind) with the sensor
     yawed 5° in the airframe, as a plain log and an attitude file."""
-    from maglog.sim.scenario import ErrorModel, make_survey
+    from maglog.sim.stimulus.scenario import ErrorModel, make_survey
     flight = make_survey(errors=ErrorModel(mounting=(0.0, 0.0, 5.0)), seed=6)
     folder = tmp_path_factory.mktemp("survey")
     (folder / "LOG00002.TXT").write_bytes(flight.log())
@@ -149,7 +149,7 @@ def test_attitude_file_errors(survey, tmp_path, capsys, text, message):
 
 
 def test_ellipsoid_method_and_its_constrained_fallback(tmp_path, capsys):
-    from maglog.sim import sentences
+    from maglog.sim.stimulus import sentences
     flight = make_flight(coverage="full", seconds=60, seed=8)
     log = tmp_path / "LOG00003.TXT"
     log.write_bytes(flight.log())
@@ -186,7 +186,7 @@ def edit_log(log, *, pmag=None, cesium=None, gga=None, zda=None):
     """The log with its lines rebuilt: ``pmag(k, fields)``, ``cesium(k, text)``, ``gga(k,
     fields)``, ``zda(k, fields)`` return the new fields (text; checksums recomputed) or
     None to drop the line."""
-    from maglog.sim.sentences import nmea_sentence
+    from maglog.sim.stimulus.sentences import nmea_sentence
     out, counts = [], {}
     for line in log.splitlines(keepends=True):
         body = line.rstrip(b"\r\n").decode()

@@ -87,7 +87,7 @@ def test_never_the_trivial_solution():
 @pytest.mark.parametrize("noise", [5.0, 100.0])
 @pytest.mark.parametrize("coverage,limit", [("full", 1.01), ("uav", 1.01), ("planar", 1.10)])
 def test_flight_coverages_reach_the_noise_floor(coverage, limit, noise, solver):
-    from maglog.sim.scenario import ErrorModel, make_flight
+    from maglog.sim.stimulus.scenario import ErrorModel, make_flight
     flight = make_flight(coverage=coverage, seconds=100, seed=3, errors=ErrorModel(noise=noise))
     k_true, c_true = flight.errors.truth()
     floor = np.sqrt(np.mean((np.linalg.norm(apply_scalar(k_true, c_true, flight.b_meas),
@@ -140,7 +140,7 @@ def test_bad_options():
 def _ill_posed_flight():
     """A stretch of UAV flight whose reference the model cannot reach inside the box: the
     raw field is twice the reference's scale plus an offset outside it."""
-    from maglog.sim.scenario import make_flight
+    from maglog.sim.stimulus.scenario import make_flight
     flight = make_flight(coverage="uav", seconds=30, seed=9)
     return flight.b_meas, flight.total * (1 + 0.9 * np.sin(np.arange(flight.t.size) / 7))
 
@@ -164,7 +164,7 @@ def test_status_is_honest_at_the_bound_and_at_the_evaluation_limit(solver, monke
 
 
 def test_both_solvers_agree_on_the_same_cases():
-    from maglog.sim.scenario import make_flight
+    from maglog.sim.stimulus.scenario import make_flight
     for coverage in ("full", "uav", "planar"):
         flight = make_flight(coverage=coverage, seconds=100, seed=4)
         lm = calibrate_scalar(flight.b_meas, flight.total, solver="lm")

@@ -8,7 +8,7 @@ import pytest
 
 from maglog.calib.pipeline import calibrate_card
 from maglog.cli.summary import CAUSES
-from maglog.sim.scenario import make_flight
+from maglog.sim.stimulus.scenario import make_flight
 
 # Tests are no package: the folder goes on the path for the helper module.
 sys.path.insert(0, str(Path(__file__).parent))

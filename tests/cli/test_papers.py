@@ -11,7 +11,7 @@ from maglog.calib.ellipsoid import octant_coverage
 from maglog.calib.pipeline import calibrate_card
 from maglog.cli.papers import (PAPER_A, PAPER_C, STATIC_MIN_SAMPLES, paper_results,
                                select_by_octant)
-from maglog.sim.scenario import ErrorModel, make_flight
+from maglog.sim.stimulus.scenario import ErrorModel, make_flight
 
 sys.path.insert(0, str(Path(__file__).parent))
 from flights import truth_for, write_card

@@ -5,7 +5,7 @@ import random
 import pytest
 
 from maglog.hw.arbiter import FrameArbiter
-from maglog.sim.amaranth_tb import collect_frames, run_simulation
+from maglog.sim.backends.amaranth import collect_frames, run_simulation
 
 
 def make_frames(rng, channel, count):

@@ -9,9 +9,9 @@ import pytest
 
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
-from maglog.sim.captures import capture_files, load_capture
-from maglog.sim.frontend_run import ChannelStimulus, FrontEndBench, Segments
-from maglog.sim.frontend_run import run_frame_filter as run_filter
+from maglog.sim.stimulus.captures import capture_files, load_capture
+from maglog.sim.runners.frontend import ChannelStimulus, FrontEndBench, Segments
+from maglog.sim.runners.frontend import run_frame_filter as run_filter
 from maglog.sim.reference import reference_filter
 
 #: One test per capture; without any, one test that ends through ``external.captures()``

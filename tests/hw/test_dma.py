@@ -6,8 +6,8 @@ import re
 import subprocess
 
 from maglog.hw.dma import Dma, DmaSource
-from maglog.sim.amaranth_tb import collect_payloads, run_simulation
-from maglog.sim.sdio_amaranth import CsrBus
+from maglog.sim.backends.amaranth import collect_payloads, run_simulation
+from maglog.sim.backends.amaranth import CsrBus
 from maglog.sw.regmap import RegisterMap
 
 SECTOR = 512

@@ -11,7 +11,7 @@ import random
 import pytest
 
 from maglog.hw.frame_fifo import FrameFifo
-from maglog.sim.amaranth_tb import collect_frames, run_simulation
+from maglog.sim.backends.amaranth import collect_frames, run_simulation
 
 
 def run_random(seed, *, depth, frames, ready=None):

@@ -39,7 +39,7 @@ from amaranth.lib import wiring
 from amaranth.utils import ceil_log2
 
 from maglog.hw.frame_fifo import FrameByte, FrameFifo
-from maglog.sim import formal
+import formal      # tests/support/formal.py, on sys.path by tests/conftest.py
 
 
 pytestmark = pytest.mark.formal

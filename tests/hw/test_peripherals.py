@@ -10,9 +10,9 @@ import pytest
 
 from maglog.hw.arbiter import TaggedFrameByte
 from maglog.hw.peripherals import Button, Events, GpsTime, Leds, Rtc, Watchdog
-from maglog.sim import sentences
-from maglog.sim.amaranth_tb import run_simulation
-from maglog.sim.sdio_amaranth import CsrBus
+from maglog.sim.stimulus import sentences
+from maglog.sim.backends.amaranth import run_simulation
+from maglog.sim.backends.amaranth import CsrBus
 from maglog.sw.regmap import RegisterMap
 
 #: A slow system clock, so that milliseconds cost few simulated cycles.

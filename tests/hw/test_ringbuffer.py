@@ -15,9 +15,9 @@ from amaranth.lib.wiring import In, Out
 from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
 from maglog.hw.ringbuffer import RingBuffer
 from maglog.hw.sdram import SdramController
-from maglog.sim.amaranth_tb import CLOCK_HZ, run_simulation
+from maglog.sim.backends.amaranth import CLOCK_HZ, run_simulation
 from maglog.sim.models.sdram import SdramChip
-from maglog.sim.sdram_amaranth import run_sdram
+from maglog.sim.backends.amaranth import run_sdram
 
 #: The simulated clock, which the controller and the chip model time their rules by.
 CLK_FREQ = CLOCK_HZ

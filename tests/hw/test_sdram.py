@@ -7,8 +7,8 @@ import pytest
 
 from maglog.hw.arch.sdram import IS42S16160, MT48LC4M32B2
 from maglog.hw.sdram import SdramController
-from maglog.sim.amaranth_tb import CLOCK_HZ
-from maglog.sim.sdram_amaranth import run_requests
+from maglog.sim.backends.amaranth import CLOCK_HZ
+from maglog.sim.backends.amaranth import run_requests
 
 #: The simulated clock, which the controller and the chip model time their rules by.
 CLK_FREQ = CLOCK_HZ
@@ -95,13 +95,13 @@ def test_parameters_are_checked():
 @pytest.mark.parametrize("simulator", ["icarus", "verilator"])
 def test_controller_verilog_against_the_model_under_cocotb(simulator, external, tmp_path):
     from amaranth.back import verilog
-    from maglog.sim.cocotb_run import CocotbBuild
+    from maglog.sim.backends.cocotb import CocotbBuild
     external.simulator(simulator)
     chip = IS42S16160
     build = CocotbBuild(simulator, tmp_path, "maglog_sdram")
     build.build(verilog.convert(SdramController(chip, clk_freq=CLK_FREQ, cas_latency=3),
                                 name="maglog_sdram"))
-    result = build.run("maglog.sim.cocotb_sdram",
+    result = build.run("maglog.sim.backends.cocotb_sdram",
                        {"chip": chip.name, "seed": 9, "requests": 2500})
     assert result["mismatches"] == [] and result["errors"] == []
     assert result["refreshes"] >= 3 and result["reads"] > 1000

@@ -15,12 +15,12 @@ from maglog.hw.arch import sd as arch_sd
 from maglog.hw.arch.sdram import MT48LC4M32B2
 from maglog.hw.arbiter import FrameArbiter
 from maglog.hw.storage import Storage
-from maglog.sim.amaranth_tb import run_simulation
+from maglog.sim.backends.amaranth import run_simulation
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.sdcard import SdCard
 from maglog.sim.models.sdram import SdramChip
-from maglog.sim.sdio_amaranth import CsrBus, run_card
-from maglog.sim.sdram_amaranth import run_sdram
+from maglog.sim.backends.amaranth import CsrBus, run_card
+from maglog.sim.backends.amaranth import run_sdram
 from maglog.sw.regmap import RegisterMap
 from maglog.sw.sdcard import SdCardDriver
 from maglog.sw.storage import RingSource

@@ -14,9 +14,9 @@ from amaranth.sim import Simulator
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
 from maglog.hw.top import LOGGER_ID, TOPLEVEL_NAME, Logger, RecordGate, generate_verilog
-from maglog.sim.amaranth_tb import feed_stream, run_simulation
-from maglog.sim.sentences import cesium, gga, pmag1, zda
-from maglog.sim.uart_line import encode
+from maglog.sim.backends.amaranth import feed_stream, run_simulation
+from maglog.sim.stimulus.sentences import cesium, gga, pmag1, zda
+from maglog.sim.stimulus.uart_line import encode
 from maglog.sw.regmap import RegisterMap
 
 CLK_FREQ = 1e6

@@ -5,8 +5,8 @@ import random
 import pytest
 
 from maglog.hw.uart import UartRx
-from maglog.sim.amaranth_tb import collect_payloads, drive_line, run_simulation
-from maglog.sim.uart_line import LineTrace, RxEvent, encode, segments_from_levels
+from maglog.sim.backends.amaranth import collect_payloads, drive_line, run_simulation
+from maglog.sim.stimulus.uart_line import LineTrace, RxEvent, encode, segments_from_levels
 
 
 def run_rx(steps, *, divisor_init=1, ready=None, tail_cycles=200):

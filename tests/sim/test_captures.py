@@ -1,4 +1,4 @@
-"""Tests for maglog.sim.captures, and every real GPS capture through the reference filter.
+"""Tests for maglog.sim.stimulus.captures, and every real GPS capture through the reference filter.
 
 The captures are read from the shared data folder beside the repository; when it is absent
 the capture tests end through the ``external`` fixture: a skip with the reason on a
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from maglog.sim import captures
-from maglog.sim.captures import DATA_ENV_VAR, capture_files, load_capture, shared_data_dir
+from maglog.sim.stimulus import captures
+from maglog.sim.stimulus.captures import DATA_ENV_VAR, capture_files, load_capture, shared_data_dir
 from maglog.sim.reference import COUNTER_NAMES, Kind, reference_filter
 
 MAX_FRAME = 128

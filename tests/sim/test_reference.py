@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from maglog.sim.reference import COUNTER_NAMES, FilterResult, Kind, ReferenceFilter, reference_filter
-from maglog.sim.sentences import cesium, gga, gsa, gsv, nmea_checksum, nmea_sentence, pmag1, rmc, vtg, zda
-from maglog.sim.streams import demo_streams
-from maglog.sim.uart_line import RxEvent
+from maglog.sim.stimulus.sentences import cesium, gga, gsa, gsv, nmea_checksum, nmea_sentence, pmag1, rmc, vtg, zda
+from maglog.sim.stimulus.streams import demo_streams
+from maglog.sim.stimulus.uart_line import RxEvent
 
 COUNTERS = set(COUNTER_NAMES)
 ZDA = zda(dt.datetime(2024, 6, 1, 10, 0, 1))

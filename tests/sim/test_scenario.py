@@ -1,10 +1,10 @@
 """Synthetic flights: the error model's truth and the survey's track, checked against
-relations computed here rather than in sim.scenario."""
+relations computed here rather than in sim.stimulus.scenario."""
 
 import numpy as np
 import pytest
 
-from maglog.sim.scenario import ErrorModel, make_flight, make_survey
+from maglog.sim.stimulus.scenario import ErrorModel, make_flight, make_survey
 
 
 def rot(axis, angle):

@@ -1,4 +1,4 @@
-"""Tests for maglog.sim.sentences: checksums, exact formats, argument checks."""
+"""Tests for maglog.sim.stimulus.sentences: checksums, exact formats, argument checks."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import re
 import numpy as np
 import pytest
 
-from maglog.sim import sentences
-from maglog.sim.sentences import cesium, gga, gsa, gsv, nmea_checksum, nmea_sentence, pmag1, rmc, vtg, zda
+from maglog.sim.stimulus import sentences
+from maglog.sim.stimulus.sentences import cesium, gga, gsa, gsv, nmea_checksum, nmea_sentence, pmag1, rmc, vtg, zda
 
 # Formats of shared/DESIGN.md ("Formats"), written out as regular expressions.
 PMAG_RE = re.compile(

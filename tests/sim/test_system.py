@@ -5,9 +5,9 @@ import pytest
 
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
-from maglog.sim import sentences
+from maglog.sim.stimulus import sentences
 from maglog.sim.reference import Kind, reference_filter
-from maglog.sim.system import (MIN_END_GAP_S, UART_FRAME_BITS, Burst, SystemScenario,
+from maglog.sim.stimulus.system import (MIN_END_GAP_S, UART_FRAME_BITS, Burst, SystemScenario,
                                short_scenario)
 
 
@@ -90,7 +90,7 @@ def _line(changes, bit, end):
 
 
 def test_pin_changes_carry_every_byte_and_the_presses():
-    from maglog.sim.uart_line import decode
+    from maglog.sim.stimulus.uart_line import decode
     s = short_scenario()
     changes = s.pin_changes()
     end = round(s.until * s.clk_freq)

@@ -1,4 +1,4 @@
-"""The whole logger under cocotb (sim/system_cocotb.py): the generated Verilog with the SDRAM
+"""The whole logger under cocotb (sim/backends/cocotb_system.py): the generated Verilog with the SDRAM
 and SD card models on its pins and the firmware on its Wishbone port.
 
 The application's recording of the short scenario must leave a card that ``fsck.fat -n``
@@ -13,8 +13,8 @@ import pytest
 from maglog.calib.card import read_logs
 from maglog.hw.top import Logger, generate_verilog
 from maglog.sim.models.card_image import CardImage
-from maglog.sim.system import short_scenario
-from maglog.sim.system_cocotb import (RESET_CYCLES, SDRAM_PACKED, TOPLEVEL, run_system_cocotb,
+from maglog.sim.stimulus.system import short_scenario
+from maglog.sim.backends.cocotb_system import (RESET_CYCLES, SDRAM_PACKED, TOPLEVEL, run_system_cocotb,
                                       settings_to_json, system_verilog)
 from maglog.sw.app import AppSettings
 from maglog.sw.fat32 import format_image

@@ -1,11 +1,11 @@
-"""Tests for maglog.sim.uart_line: exact traces, round trips with baud error and faults."""
+"""Tests for maglog.sim.stimulus.uart_line: exact traces, round trips with baud error and faults."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from maglog.sim.uart_line import LineTrace, RxEvent, decode, encode
+from maglog.sim.stimulus.uart_line import LineTrace, RxEvent, decode, encode
 
 BAUD_ERRORS = [-0.03, -0.02, -0.01, 0.0, 0.01, 0.02, 0.03]
 BIT_CYCLES = [16, 10.4, 104.17]

@@ -1,6 +1,6 @@
 """sw/app.py: the application loop on the transaction-level model of the logger.
 
-Each run feeds a scenario (sim/system.py: serial bursts with their timing, button presses)
+Each run feeds a scenario (sim/stimulus/system.py: serial bursts with their timing, button presses)
 to the model, runs the firmware until the scenario's end, and judges the card image:
 ``fsck.fat -n`` finds nothing, and the LOG files hold exactly the frames the reference
 filter keeps over the recording, in order (read back with calib.card).
@@ -12,10 +12,10 @@ import sys
 import pytest
 
 from maglog.calib.card import open_card, read_logs
-from maglog.sim import sentences
+from maglog.sim.stimulus import sentences
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.logger import LoggerModel
-from maglog.sim.system import SystemScenario, Timeline, short_scenario
+from maglog.sim.stimulus.system import SystemScenario, Timeline, short_scenario
 from maglog.sw.app import (LED_FIX, LED_RECORDING, AppSettings, Blink, FwError, LoggerApp,
                            State)
 from maglog.sw.fat32 import format_image

@@ -10,7 +10,7 @@ from maglog.hw.arch import sd as arch
 from maglog.hw.arch.sd import CardState, CardStatus, Response
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.sdcard import SdCard, Transaction
-from maglog.sim.sdio_amaranth import run_driver
+from maglog.sim.backends.amaranth import run_driver
 
 
 def test_the_driver_imports_without_amaranth():

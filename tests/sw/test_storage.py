@@ -49,12 +49,12 @@ def gateware_run(image_path, batches, *, capacity=1 << 14):
 
     from maglog.hw.arch.sdram import MT48LC4M32B2
     from maglog.hw.storage import Storage
-    from maglog.sim.amaranth_tb import run_simulation
+    from maglog.sim.backends.amaranth import run_simulation
     from maglog.sim.models.card_image import CardImage
     from maglog.sim.models.sdcard import SdCard
     from maglog.sim.models.sdram import SdramChip
-    from maglog.sim.sdio_amaranth import CsrBus, run_card
-    from maglog.sim.sdram_amaranth import run_sdram
+    from maglog.sim.backends.amaranth import CsrBus, run_card
+    from maglog.sim.backends.amaranth import run_sdram
 
     clk_freq = 4e6
     storage = Storage(MT48LC4M32B2, clk_freq=clk_freq, capacity=capacity)
@@ -172,10 +172,10 @@ class NarrowDma(DmaStorage):
 
 
 def test_flush_rounds_and_split_writes_on_the_logger_model(tmp_path, fat_tools):
-    from maglog.sim import sentences
+    from maglog.sim.stimulus import sentences
     from maglog.sim.models.card_image import CardImage
     from maglog.sim.models.logger import LoggerModel
-    from maglog.sim.system import Burst, SystemScenario, short_scenario
+    from maglog.sim.stimulus.system import Burst, SystemScenario, short_scenario
 
     # 300 magnetometer frames back to back (about 13 KB in 0.57 s); flushes at 0.3 s and
     # at the end, each more than 8 sectors.

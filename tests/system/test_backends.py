@@ -7,7 +7,7 @@ import pytest
 
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models import logger as model_backend
-from maglog.sim.system import short_scenario
+from maglog.sim.stimulus.system import short_scenario
 from maglog.sw.app import AppSettings, LoggerApp
 from maglog.sw.fat32 import format_image
 
@@ -57,7 +57,7 @@ def test_model_is_deterministic(blank, model_card):
 
 @pytest.mark.slow
 def test_amaranth_gives_the_models_card(blank, model_card):
-    from maglog.sim.system_amaranth import run_system
+    from maglog.sim.backends.amaranth import run_system
     image = CardImage.load(blank)
     result = run_system(short_scenario(), firmware, image)
     assert result.sdram_errors == [] and result.card_errors == []
@@ -68,7 +68,7 @@ def test_amaranth_gives_the_models_card(blank, model_card):
 @pytest.mark.cocotb
 @pytest.mark.parametrize("backend", ["verilator", "icarus"])
 def test_cocotb_gives_the_models_card(backend, blank, model_card, external, tmp_path):
-    from maglog.sim.system_cocotb import run_system_cocotb
+    from maglog.sim.backends.cocotb_system import run_system_cocotb
     external.simulator(backend)
     image = CardImage.load(blank)
     result = run_system_cocotb(short_scenario(), image, backend=backend,

@@ -7,8 +7,8 @@ import json
 from maglog.cli.main import main
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.logger import run_system
-from maglog.sim.scenario import make_flight
-from maglog.sim.system import flight_scenario
+from maglog.sim.stimulus.scenario import make_flight
+from maglog.sim.stimulus.system import flight_scenario
 from maglog.sw.app import LoggerApp
 from maglog.sw.fat32 import format_image
 

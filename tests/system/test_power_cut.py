@@ -34,10 +34,10 @@ import pytest
 
 from maglog.calib.card import CardError, read_logs
 from maglog.hw.arch import fat32 as arch
-from maglog.sim import sentences
+from maglog.sim.stimulus import sentences
 from maglog.sim.models.card_image import TracingImage
 from maglog.sim.models.logger import LoggerModel
-from maglog.sim.system import SystemScenario, Timeline, short_scenario
+from maglog.sim.stimulus.system import SystemScenario, Timeline, short_scenario
 from maglog.sw import fat32
 from maglog.sw.app import AppSettings, LoggerApp
 from maglog.sw.fat32 import ImageFile, Volume, format_image

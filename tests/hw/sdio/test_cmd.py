@@ -13,7 +13,7 @@ from amaranth.lib.wiring import In, Out
 from maglog.hw.arch import sd as arch
 from maglog.hw.sdio.clock import SdClock
 from maglog.hw.sdio.cmd import CmdEngine, ResponseKind
-from maglog.sim.amaranth_tb import run_simulation
+from maglog.sim.backends.amaranth import run_simulation
 
 CRC7 = crc.Calculator(crc.Configuration(width=8, polynomial=arch.CRC7_POLY << 1, init_value=0,
                                         final_xor_value=0, reverse_input=False,

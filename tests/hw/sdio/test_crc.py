@@ -7,7 +7,7 @@ import pytest
 
 from maglog.hw.arch import sd as arch
 from maglog.hw.sdio.crc import Crc7, Crc16, Crc16Lanes, SerialCrc
-from maglog.sim.amaranth_tb import run_simulation
+from maglog.sim.backends.amaranth import run_simulation
 
 # CRC7 (x^7 + x^3 + 1) is CRC8 with the generator shifted up one place, result shifted down:
 # the `crc` package only handles whole-byte widths.

@@ -15,7 +15,7 @@ from amaranth.lib.wiring import In, Out
 from maglog.hw.arch import sd as arch
 from maglog.hw.sdio.clock import SdClock
 from maglog.hw.sdio.dat import DatReader, DatWriter
-from maglog.sim.amaranth_tb import collect_payloads, feed_stream, run_simulation
+from maglog.sim.backends.amaranth import collect_payloads, feed_stream, run_simulation
 
 CRC16 = crc.Calculator(crc.Crc16.XMODEM)
 

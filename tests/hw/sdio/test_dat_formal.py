@@ -74,7 +74,7 @@ from amaranth.lib.wiring import In
 
 from maglog.hw.arch import sd as arch
 from maglog.hw.sdio.dat import DatWriter, _WState
-from maglog.sim import formal
+import formal      # tests/support/formal.py, on sys.path by tests/conftest.py
 
 
 pytestmark = pytest.mark.formal

@@ -18,7 +18,7 @@ from maglog.hw.sdio.cmd import ResponseKind
 from maglog.hw.sdio.host import DataPhase, SdioHost
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.sdcard import Faults, SdCard
-from maglog.sim.sdio_amaranth import run_driver
+from maglog.sim.backends.amaranth import run_driver
 from maglog.sw.regmap import RegisterMap
 from maglog.sw.sdcard import SdNoCard, SdTimeout, SdWriteError
 

@@ -12,8 +12,8 @@ import pytest
 from amaranth.back import verilog
 
 from maglog.hw.sdio.host import SdioHost
-from maglog.sim.amaranth_tb import CLOCK_HZ
-from maglog.sim.cocotb_run import COCOTB_SIMULATORS, CocotbBuild
+from maglog.sim.backends.amaranth import CLOCK_HZ
+from maglog.sim.backends.cocotb import COCOTB_SIMULATORS, CocotbBuild
 from maglog.sim.models.card_image import CardImage
 
 pytestmark = pytest.mark.cocotb
@@ -41,7 +41,7 @@ def build(request, external, tmp_path_factory):
                          ids=["clean", "dat-crc"])
 def test_random_blocks_written_and_read_back(build, faults):
     seed = 17
-    result = build.run("maglog.sim.cocotb_sdio", {
+    result = build.run("maglog.sim.backends.cocotb_sdio", {
         "capacity": CAPACITY, "seed": seed, "sys_clock_hz": SYS_CLOCK_HZ, "runs": RUNS,
         "faults": faults})
     assert result["mismatches"] == [] and result["card_errors"] == []

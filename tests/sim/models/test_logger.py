@@ -2,7 +2,7 @@
 sector buffer, the front end's counters against the reference filter, resets, power cuts,
 the SoC's registers, and its speed.
 
-Expected card contents come from the reference filter and sim/system.py's scenarios (the
+Expected card contents come from the reference filter and sim/stimulus/system.py's scenarios (the
 time each kept frame ends), never from the model.
 
 The tests take the gateware's own memory map (hw.top.Logger); the driver is sw.sdcard's, a
@@ -24,14 +24,14 @@ from maglog.hw.peripherals import Events, Leds
 from maglog.hw.soc import csr
 from maglog.hw.storage import Storage
 from maglog.hw.top import EVENT_NAMES, Logger
-from maglog.sim import sentences
+from maglog.sim.stimulus import sentences
 from maglog.sim.models.card_image import CardImage
 from maglog.sim.models.logger import (ACCESS_CYCLES, RING_BYTE_CYCLES, LoggerModel,
                                       RunResult, run_system)
 from maglog.sim.models.logger_frontend import RECEIVED_BITS
 from maglog.sim.reference import Kind, reference_filter
-from maglog.sim.streams import CESIUM_RATE_HZ, GPS_RATE_HZ, MAG_RATE_HZ, demo_streams
-from maglog.sim.system import short_scenario
+from maglog.sim.stimulus.streams import CESIUM_RATE_HZ, GPS_RATE_HZ, MAG_RATE_HZ, demo_streams
+from maglog.sim.stimulus.system import short_scenario
 from maglog.sw.app import LoggerApp
 from maglog.sw.bus import BusTimeout, PowerCut, RegisterBus
 from maglog.sw.fat32 import format_image

@@ -11,7 +11,7 @@ import numpy as np
 
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.stimulus import load_scenario, loads_scenario
-from maglog.sim.system import MIN_END_GAP_S, SystemScenario
+from maglog.sim.stimulus.system import MIN_END_GAP_S, SystemScenario
 
 from .conftest import SHORT
 

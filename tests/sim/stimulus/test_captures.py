@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from maglog.sim.captures import load_capture
+from maglog.sim.stimulus.captures import load_capture
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.stimulus import load_scenario
 

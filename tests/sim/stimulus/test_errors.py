@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from maglog.sim.scenario import DEFAULT_ERRORS
+from maglog.sim.stimulus.scenario import DEFAULT_ERRORS
 from maglog.sim.stimulus import loads_scenario, preset
 from maglog.sim.stimulus.errors import PAPER_A_O, PAPER_A_P, c_no, forward, from_forward
 

@@ -8,7 +8,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from maglog.sim import sentences
+from maglog.sim.stimulus import sentences
 from maglog.sim.reference import COUNTER_NAMES, Kind, ReferenceFilter, reference_filter
 from maglog.sim.stimulus import default_scenario_path
 from maglog.sim.stimulus.build import NOISE_BYTES

@@ -1,4 +1,4 @@
-"""sim.system's bursts at an off-nominal rate (the baud-error fault's carrier)."""
+"""sim.stimulus.system's bursts at an off-nominal rate (the baud-error fault's carrier)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import pytest
 
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
-from maglog.sim import sentences
-from maglog.sim.system import Burst, SystemScenario, Timeline
+from maglog.sim.stimulus import sentences
+from maglog.sim.stimulus.system import Burst, SystemScenario, Timeline
 
 CHANNELS = (ChannelConfig(ChannelKind.PMAG, 115_200), ChannelConfig(ChannelKind.NMEA, 9_600),
             ChannelConfig(ChannelKind.CESIUM, 9_600))

@@ -1,4 +1,4 @@
-"""The baud-error prediction (sim.uart_line.decode at the gateware's bit time) against the
+"""The baud-error prediction (sim.stimulus.uart_line.decode at the gateware's bit time) against the
 gateware's own receiver (hw.uart.UartRx on the Amaranth simulator), on the default
 scenario's lines as the logger's pin sees them."""
 
@@ -10,7 +10,7 @@ import pytest
 
 from maglog.hw.frontend import divisor_for
 from maglog.hw.uart import UartRx
-from maglog.sim.amaranth_tb import collect_payloads, drive_line, run_simulation
+from maglog.sim.backends.amaranth import collect_payloads, drive_line, run_simulation
 
 
 def _line(system, channel, start, stop):

@@ -4,7 +4,7 @@ presses) and what its card must then hold, independently of the backend that run
 A :class:`SystemScenario` is the one input of every system backend (the transaction-level
 model, the Amaranth simulator, cocotb): the same scenario and the same firmware must give
 the same card image on each. Its :meth:`~SystemScenario.expected_frames` come from the
-reference filter (sim/reference.py), never from a backend.
+reference filter (sim/reference/), never from a backend.
 
 Frames of different channels may overlap on their lines, but a backend decides their order
 in the log from the instant each one ends, to within a few bit times; a scenario therefore
@@ -21,16 +21,16 @@ import functools
 import random
 from dataclasses import dataclass, field
 
-from ..hw.arch import frames as arch_frames
-from ..hw.arch import uart as arch_uart
-from ..hw.frame_filter import ChannelKind
-from ..hw.frontend import ChannelConfig, divisor_for
+from ...hw.arch import frames as arch_frames
+from ...hw.arch import uart as arch_uart
+from ...hw.frame_filter import ChannelKind
+from ...hw.frontend import ChannelConfig, divisor_for
 from . import sentences
-from .reference import ERROR_MARK, Kind, ReferenceFilter, reference_filter
+from ..reference import ERROR_MARK, Kind, ReferenceFilter, reference_filter
 from .uart_line import decode, encode
 
 
-__all__ = ["Burst", "SystemScenario", "SystemResult", "Timeline", "flight_scenario",
+__all__ = ["Burst", "SystemScenario", "Timeline", "flight_scenario",
            "FLIGHT_CHANNELS", "short_scenario", "MIN_END_GAP_S", "UART_FRAME_BITS"]
 
 #: Bit times of one 8N1 character on the line: start, 8 data, stop.
@@ -139,9 +139,9 @@ class SystemScenario:
         pairs, and when (seconds, the end of each character's stop bit on the line).
 
         A burst at the nominal rate is received as sent. A burst at another rate is encoded
-        at its own bit time (:func:`~maglog.sim.uart_line.encode`, idle before and after)
+        at its own bit time (:func:`~maglog.sim.stimulus.uart_line.encode`, idle before and after)
         and decoded at the gateware's (:meth:`sampling_bit_cycles`) by the ideal receiver
-        :func:`~maglog.sim.uart_line.decode`; when that gives one character per byte each
+        :func:`~maglog.sim.stimulus.uart_line.decode`; when that gives one character per byte each
         keeps its byte's time, otherwise all of them take the burst's end."""
         nominal = self.channels[channel].baud
         events, times = [], []
@@ -302,26 +302,6 @@ def _pmag_frames(rng, count, seq0):
     return frames
 
 
-@dataclass
-class SystemResult:
-    """What a system run leaves: the card, the LEDs at the end, the simulated and
-    wall-clock seconds, and the models' protocol findings."""
-    image: object
-    led: int = 0
-    seconds: float = 0.0
-    wall_seconds: float = 0.0
-    sdram_errors: list = field(default_factory=list)
-    card_errors: list = field(default_factory=list)
-    #: The front end's frame counters at the end, ``{channel: {counter: n}}`` (None where
-    #: the backend does not read them).
-    counters: dict | None = None
-    #: The backend that ran, and its own figures (commands, blocks, accesses).
-    backend: str | None = None
-    stats: dict = field(default_factory=dict)
-    #: What the backend could not model of the scenario.
-    notes: list = field(default_factory=list)
-
-
 class Timeline:
     """Places frames on their lines so that no two end closer than :data:`MIN_END_GAP_S`
     (a frame is moved later until it fits, never earlier)."""
@@ -356,7 +336,7 @@ FLIGHT_CHANNELS = (ChannelConfig(ChannelKind.PMAG, 115_200),
 
 def flight_scenario(flight, *, clk_freq=50e6, lead_s=2.0, tail_s=1.0, mag_rate=20.0,
                     cesium_rate=10.0, seed=0):
-    """A recording of a :class:`~maglog.sim.scenario.Flight`: its log lines (the
+    """A recording of a :class:`~maglog.sim.stimulus.scenario.Flight`: its log lines (the
     magnetometer's, the cesium's, GGA, ZDA and VTG once a second) sent on their channels at
     the instruments' baud rates from ``lead_s`` on (the GPS lines of a second one after the
     other), the button pressed ``lead_s / 2`` before the first line and ``tail_s / 2`` after

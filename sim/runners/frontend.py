@@ -11,13 +11,13 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..hw.arch import frames as arch_frames
-from ..hw.arch import uart as arch_uart
-from ..hw.frame_filter import ChannelKind, FrameFilter
-from ..hw.frontend import ChannelConfig, DEFAULT_CHANNELS, FrontEnd, TOPLEVEL_NAME, generate_verilog
-from . import amaranth_tb
-from .cocotb_run import CocotbBuild
-from .uart_line import encode
+from ...hw.arch import frames as arch_frames
+from ...hw.arch import uart as arch_uart
+from ...hw.frame_filter import ChannelKind, FrameFilter
+from ...hw.frontend import ChannelConfig, DEFAULT_CHANNELS, FrontEnd, TOPLEVEL_NAME, generate_verilog
+from ..backends import amaranth as amaranth_backend
+from ..backends.cocotb import CocotbBuild
+from ..stimulus.uart_line import encode
 
 
 __all__ = ["BACKENDS", "Segments", "ChannelStimulus", "FrontEndResult", "FrontEndBench",
@@ -25,11 +25,11 @@ __all__ = ["BACKENDS", "Segments", "ChannelStimulus", "FrontEndResult", "FrontEn
 
 BACKENDS = ("amaranth", "icarus", "verilator")
 #: cocotb's clock period, the Amaranth simulator's (one constant for both).
-CLOCK_NS = amaranth_tb.CLOCK_NS
+CLOCK_NS = amaranth_backend.CLOCK_NS
 
 
 class Segments(list):
-    """A piece of a line given as ``(level, cycles)`` pairs (see :mod:`maglog.sim.uart_line`)."""
+    """A piece of a line given as ``(level, cycles)`` pairs (see :mod:`maglog.sim.stimulus.uart_line`)."""
 
 
 @dataclass
@@ -102,7 +102,7 @@ class FrontEndBench:
 
     def __init__(self, channels=DEFAULT_CHANNELS, *, backend="amaranth", build_dir=None,
                  max_frame=arch_frames.DEFAULT_MAX_FRAME, fifo_depth=1024,
-                 clk_freq=amaranth_tb.CLOCK_HZ, backpressure=0.0, seed=0):
+                 clk_freq=amaranth_backend.CLOCK_HZ, backpressure=0.0, seed=0):
         if backend not in BACKENDS:
             raise ValueError(f"Backend must be one of {', '.join(BACKENDS)}, not {backend!r}")
         self.channels = tuple(c if isinstance(c, ChannelConfig) else ChannelConfig(*c)
@@ -144,7 +144,7 @@ class FrontEndBench:
             if s.expected is not None:
                 entry["expected"] = [frame.hex() for frame in s.expected]
             channels.append(entry)
-        raw = self._cocotb.run("maglog.sim.cocotb_frontend", {
+        raw = self._cocotb.run("maglog.sim.backends.cocotb_frontend", {
             "channels": channels,
             "counter_names": list(arch_frames.COUNTER_NAMES),
             "drain_ns": self._drain(stimuli) * CLOCK_NS,
@@ -168,11 +168,11 @@ class FrontEndBench:
         def line_driver(k, stimulus):
             async def drive(ctx):
                 ctx.set(dut.divisor[k], stimulus.divisor)
-                await amaranth_tb.drive_line(ctx, dut.uart_rx[k], stimulus.line_segments())
+                await amaranth_backend.drive_line(ctx, dut.uart_rx[k], stimulus.line_segments())
             return drive
 
         async def timekeeper(ctx):
-            await ctx.delay(cycles * amaranth_tb.CLOCK_PERIOD)
+            await ctx.delay(cycles * amaranth_backend.CLOCK_PERIOD)
             for k in range(len(self.channels)):
                 counters.append({name: ctx.get(getattr(dut.counters[k], name))
                                  for name in arch_frames.COUNTER_NAMES})
@@ -188,7 +188,7 @@ class FrontEndBench:
             ready = lambda cycle: rng.random() >= self.backpressure
 
         async def monitor(ctx):
-            await amaranth_tb.collect_frames(ctx, dut.o, Tagged(), fields=("data", "channel"),
+            await amaranth_backend.collect_frames(ctx, dut.o, Tagged(), fields=("data", "channel"),
                                              ready=ready)
 
         async def flush_counter(ctx):
@@ -197,7 +197,7 @@ class FrontEndBench:
                 flushes[0] += 1
 
         testbenches = [line_driver(k, s) for k, s in enumerate(stimuli)] + [timekeeper]
-        amaranth_tb.run_simulation(dut, testbenches, background=[monitor, flush_counter],
+        amaranth_backend.run_simulation(dut, testbenches, background=[monitor, flush_counter],
                                    name="frontend",
                                    vcd_dir=self.build_dir if waves else None)
         mismatches = []
@@ -242,20 +242,20 @@ def run_frame_filter(kind, events, *, max_frame=arch_frames.DEFAULT_MAX_FRAME, f
     frames, counters, flushes = [], {}, [0]
 
     async def source(ctx):
-        await amaranth_tb.feed_stream(ctx, dut.i, [{"data": b, "framing_error": int(err)}
+        await amaranth_backend.feed_stream(ctx, dut.i, [{"data": b, "framing_error": int(err)}
                                        for b, err in events], hold=hold)
         await ctx.tick().repeat(tail_cycles or fifo_depth + 16)
         counters.update({name: ctx.get(getattr(dut.counters, name))
                          for name in arch_frames.COUNTER_NAMES})
 
     async def sink(ctx):
-        await amaranth_tb.collect_frames(ctx, dut.o, frames, ready=ready)
+        await amaranth_backend.collect_frames(ctx, dut.o, frames, ready=ready)
 
     async def flush(ctx):
         while True:
             await ctx.posedge(dut.flush)
             flushes[0] += 1
 
-    amaranth_tb.run_simulation(dut, [source], background=[sink, flush],
+    amaranth_backend.run_simulation(dut, [source], background=[sink, flush],
                                name=f"filter_{ChannelKind(kind).value}")
     return frames, counters, flushes[0]

@@ -21,10 +21,10 @@ from cocotb.clock import Clock
 from cocotb.simtime import get_sim_time
 from cocotb.triggers import FallingEdge, ReadOnly, RisingEdge, Timer
 
-from ..hw.arch.sd import CardState
-from .models.sdcard import SdBus
-from ..sw.bus import BlockPort as _BlockPort
-from ..sw.bus import RegisterBus
+from ...hw.arch.sd import CardState
+from ..models.sdcard import SdBus
+from ...sw.bus import BlockPort as _BlockPort
+from ...sw.bus import RegisterBus
 
 
 __all__ = ["CsrBus", "BlockPort", "ClockMeter", "run_card"]
@@ -170,11 +170,11 @@ async def run_card(dut, card, meter=None):
 @cocotb.test()
 async def write_read_back(dut):
     """Identify the card, write the stimulus's block runs, read them back."""
-    from ..hw.sdio.host import SdioHost
-    from ..sw.regmap import RegisterMap
-    from ..sw.sdcard import SdCardDriver
-    from .models.card_image import CardImage
-    from .models.sdcard import Faults, SdCard
+    from ...hw.sdio.host import SdioHost
+    from ...sw.regmap import RegisterMap
+    from ...sw.sdcard import SdCardDriver
+    from ..models.card_image import CardImage
+    from ..models.sdcard import Faults, SdCard
 
     logging.getLogger("cocotb").setLevel(logging.WARNING)
     with open(os.environ["MAGLOG_STIMULUS"]) as f:

@@ -13,8 +13,8 @@ import cocotb
 from cocotb.clock import Clock
 from cocotb.triggers import ReadOnly, RisingEdge
 
-from ..hw.arch import sdram as arch
-from .amaranth_tb import CLOCK_HZ, CLOCK_NS
+from ...hw.arch import sdram as arch
+from .amaranth import CLOCK_HZ, CLOCK_NS
 
 _PINS = ("cke", "cs_n", "ras_n", "cas_n", "we_n", "ba", "a", "dqm", "dq_oe")
 
@@ -35,7 +35,7 @@ async def run_chip(dut, model, *, prefix="pins__"):
 
 @cocotb.test()
 async def random_traffic(dut):
-    from .models.sdram import SdramChip
+    from ..models.sdram import SdramChip
     with open(os.environ["MAGLOG_STIMULUS"]) as f:
         stimulus = json.load(f)
     chip = arch.CHIPS[stimulus["chip"]]

@@ -2,14 +2,14 @@
 top (``maglog_logger``) with the SDRAM chip model and the SD card model on its pins, the
 scenario's serial lines and button on its inputs, and the firmware on its Wishbone port.
 
-This mirrors :mod:`maglog.sim.system_amaranth`: the same scenario, the same firmware
+This mirrors :mod:`maglog.sim.backends.amaranth`: the same scenario, the same firmware
 (:class:`maglog.sw.app.LoggerApp`) and the same models; only the register bus
 (:class:`WishboneBus`) and the simulator differ. :func:`run_system_cocotb` runs in the
 caller's process and prepares a JSON stimulus and the card image; the cocotb test
 :func:`system` runs in the simulator's process and leaves the card image and a JSON result.
 
 Timing: the clock is the simulator's own (``impl="gpi"``). The reset ends at a falling edge;
-that instant is cycle 0 of the scenario (:meth:`~maglog.sim.system.SystemScenario.pin_changes`)
+that instant is cycle 0 of the scenario (:meth:`~maglog.sim.stimulus.system.SystemScenario.pin_changes`)
 and of the firmware's clock (``now()``). Every pin the test drives changes half a clock
 away from a rising edge. Python runs per SDRAM command (and the chip model, which checks
 every timing rule, once a clock: see :class:`SkippingChip`), per SD clock edge, per
@@ -29,9 +29,10 @@ from pathlib import Path
 import cocotb
 from cocotb.simtime import get_sim_time
 
-from ..hw.arch.sdram import MT48LC4M32B2
-from ..sw.bus import RegisterBus
-from .system import SystemResult, SystemScenario
+from ...hw.arch.sdram import MT48LC4M32B2
+from ...sw.bus import RegisterBus
+from ..runners.result import SystemResult
+from ..stimulus.system import SystemScenario
 
 
 __all__ = ["BACKENDS", "WishboneBus", "settings_to_json", "settings_from_json",
@@ -48,7 +49,7 @@ FIRMWARES = (APP_FIRMWARE, CARD_CHECK_FIRMWARE)
 class WishboneBus(RegisterBus):
     """The firmware's register bus on the top's ``wb_*`` ports (Wishbone classic, 32-bit,
     word addresses): ``cyc`` and ``stb`` held until ``ack``, as
-    :class:`maglog.sim.system_amaranth.WishboneBus` does. Every access starts and ends at a
+    :class:`maglog.sim.backends.amaranth.WishboneBus` does. Every access starts and ends at a
     falling edge of ``clk``; ``now()`` counts the clocks the firmware has spent, and time
     converts to clocks at the nominal ``clk_freq`` (as on the Amaranth simulator; the
     simulated period is ``clock_period_ps``, whole picoseconds)."""
@@ -146,7 +147,7 @@ def system_verilog(logger_verilog):
     the test writes any input (the clock's edges too): five times slower. Only the wrapper's
     ports are public to VPI (``/*verilator public_flat_rw*/``, with
     :data:`VERILATOR_SPEED_ARGS`): the test touches nothing else."""
-    from ..hw.top import TOPLEVEL_NAME
+    from ...hw.top import TOPLEVEL_NAME
     start = logger_verilog.index(f"module {TOPLEVEL_NAME}(")
     body = logger_verilog[start:logger_verilog.index("endmodule", start)]
     ports = [(flow, 1 + int(high) if high else 1, name)
@@ -195,7 +196,7 @@ def settings_to_json(settings):
     """The plain fields of an :class:`~maglog.sw.app.AppSettings` (numbers, flags) as a
     dict. Any other field (the ``fault`` hook, the LED patterns) is left out when it has its
     default value, which the other side rebuilds, and refused otherwise."""
-    from ..sw.app import AppSettings
+    from ...sw.app import AppSettings
     if not isinstance(settings, AppSettings):
         raise TypeError(f"Settings must be an AppSettings, not {settings!r}")
     default = AppSettings()
@@ -211,7 +212,7 @@ def settings_to_json(settings):
 
 
 def settings_from_json(plain):
-    from ..sw.app import AppSettings
+    from ...sw.app import AppSettings
     return AppSettings(**plain)
 
 
@@ -228,11 +229,11 @@ VERILATOR_SPEED_ARGS = ("--no-public-flat-rw",)
 
 
 class _SystemBuild:
-    """A :class:`~maglog.sim.cocotb_run.CocotbBuild` of the system top, with
+    """A :class:`~maglog.sim.backends.cocotb.CocotbBuild` of the system top, with
     :data:`VERILATOR_SPEED_ARGS` added to the Verilator build."""
 
     def __init__(self, backend, folder):
-        from .cocotb_run import CocotbBuild
+        from .cocotb import CocotbBuild
         self.cocotb = CocotbBuild(backend, folder, TOPLEVEL)
 
     @property
@@ -262,7 +263,7 @@ def _build(backend, build_dir, logger_verilog):
 
 def _load_into(image, path):
     """Make ``image`` hold what the raw image at ``path`` holds (in place)."""
-    from .models.card_image import CardImage
+    from ..models.card_image import CardImage
     back = CardImage.load(path)
     if back.capacity_blocks != image.capacity_blocks:
         raise RuntimeError(f"the card image came back with {back.capacity_blocks} blocks, "
@@ -293,10 +294,10 @@ def run_system_cocotb(scenario, image, *, backend, build_dir, settings=None,
     identification, card initialisation, one block written and read back through the DMA's
     sector buffer; the block is LBA 1, which the image must be able to lose).
     ``sdram_every_clock`` runs the SDRAM model with a simulator callback every clock
-    (:func:`maglog.sim.cocotb_sdram.run_chip`) instead of :class:`SkippingChip`. Returns a
-    :class:`~maglog.sim.system.SystemResult`; a firmware that stops with an exception, or
+    (:func:`maglog.sim.backends.cocotb_sdram.run_chip`) instead of :class:`SkippingChip`. Returns a
+    :class:`~maglog.sim.runners.result.SystemResult`; a firmware that stops with an exception, or
     a check that fails, raises RuntimeError with the firmware's message."""
-    from ..hw.top import Logger, generate_verilog
+    from ...hw.top import Logger, generate_verilog
     if backend not in BACKENDS:
         raise ValueError(f"cocotb system backend must be one of {', '.join(BACKENDS)}, "
                          f"not {backend!r}")
@@ -308,7 +309,7 @@ def run_system_cocotb(scenario, image, *, backend, build_dir, settings=None,
     if chip_name is None:
         raise ValueError(f"Chip must be one of the presets of hw.arch.sdram, not {chip!r}")
     if settings is None:
-        from ..sw.app import AppSettings
+        from ...sw.app import AppSettings
         settings = AppSettings()
     plain_settings = settings_to_json(settings)
     logger = Logger(channels=scenario.channels, clk_freq=scenario.clk_freq,
@@ -341,7 +342,7 @@ def run_system_cocotb(scenario, image, *, backend, build_dir, settings=None,
 
 
 def _chips():
-    from ..hw.arch import sdram as arch_sdram
+    from ...hw.arch import sdram as arch_sdram
     return arch_sdram.CHIPS
 
 
@@ -362,7 +363,7 @@ def _unpacker(dut):
 
 class SkippingChip:
     """The SDRAM chip model on the top's ``sdram_*`` pins, as
-    :func:`maglog.sim.cocotb_sdram.run_chip` runs it (the model sees the levels every rising
+    :func:`maglog.sim.backends.cocotb_sdram.run_chip` runs it (the model sees the levels every rising
     edge samples, and what it returns is on ``dq_i`` for the next edge), but without a
     simulator callback per clock while the bus is quiet.
 
@@ -421,7 +422,7 @@ class SkippingChip:
 
 
 async def run_card(dut, card):
-    """The SD card model on the top's ``sd_*`` pins, as :func:`maglog.sim.cocotb_sdio.run_card`
+    """The SD card model on the top's ``sd_*`` pins, as :func:`maglog.sim.backends.cocotb_sdio.run_card`
     runs it on the host's ``sd__*`` ports: it samples at each rising edge of ``sd_clk`` and
     drives after the falling edge; a line driven by both sides is a protocol error."""
     from cocotb.triggers import FallingEdge, ReadOnly, RisingEdge
@@ -464,9 +465,9 @@ async def _card_check(bus, memory_map, sys_clock_hz):
     """A short firmware: the logger answers with its id, the card initialises, a block
     written through the DMA's sector buffer reads back the same."""
     import random
-    from ..hw.top import LOGGER_ID
-    from ..sw.regmap import RegisterMap
-    from ..sw.storage import DmaStorage
+    from ...hw.top import LOGGER_ID
+    from ...sw.regmap import RegisterMap
+    from ...sw.storage import DmaStorage
     logger = RegisterMap(memory_map, window="logger")
     magic = logger["id"].decode(await bus.read(logger["id"].address))["magic"]
     if magic != LOGGER_ID:
@@ -488,13 +489,13 @@ async def system(dut):
     from cocotb.clock import Clock
     from cocotb.triggers import FallingEdge, RisingEdge, Timer
 
-    from ..hw.arch import sdram as arch_sdram
-    from ..hw.top import Logger
-    from ..sw.app import LoggerApp
+    from ...hw.arch import sdram as arch_sdram
+    from ...hw.top import Logger
+    from ...sw.app import LoggerApp
     from .cocotb_sdram import run_chip
-    from .models.card_image import CardImage
-    from .models.sdcard import SdCard
-    from .models.sdram import SdramChip
+    from ..models.card_image import CardImage
+    from ..models.sdcard import SdCard
+    from ..models.sdram import SdramChip
 
     logging.getLogger("cocotb").setLevel(logging.WARNING)
     with open(os.environ["MAGLOG_STIMULUS"]) as f:

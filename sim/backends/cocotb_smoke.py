@@ -12,7 +12,7 @@ import cocotb
 from cocotb.clock import Clock
 from cocotb.triggers import ClockCycles, ReadOnly, RisingEdge
 
-from .amaranth_tb import CLOCK_NS
+from .amaranth import CLOCK_NS
 
 
 @cocotb.test()
