@@ -86,6 +86,42 @@ def test_simulate_on_the_model_writes_card_truth_and_counts(tmp_path, capsys):
     assert "(truth" in printed
 
 
+@pytest.fixture(scope="session")
+def rtl_build(tmp_path_factory):
+    """One folder for the fast harness's builds per test session."""
+    return tmp_path_factory.mktemp("rtl-build")
+
+
+def test_every_fault_lands_in_the_gateware_counters_as_injected(tmp_path, capsys, external,
+                                                                  rtl_build):
+    """The short scenario (one fault of each kind, 22 s) through the logger's RTL: every
+    counter equals the truth's, and each frame-dropping fault is counted under the cause
+    the truth expects, as often as injected."""
+    external.simulator("verilator")
+    external.tool("c++", "the fast harness is C++")
+    card = tmp_path / "card.img"
+    status = main(["simulate", "short", "-o", str(card), "--backend", "verilator",
+                   "--build-dir", str(rtl_build), "--quiet"])
+    capsys.readouterr()
+    assert status == 0
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    counters = json.loads((tmp_path / "simulation.json").read_text())["counters"]
+    for name, counted in counters.items():
+        assert counted == {cause: truth["frames"][name][cause] for cause in counted}, name
+    expected = {}
+    for fault in truth["faults"]:
+        if fault["expect"] is not None:
+            key = (fault["channel"], fault["expect"]["cause"])
+            expected[key] = expected.get(key, 0) + fault["expect"]["frames"]
+    assert {fault["kind"] for fault in truth["faults"]} >= {
+        "noise_burst", "dropped_bytes", "bad_checksum", "baud_error", "gps_outage",
+        "card_busy"}
+    for (channel, cause), frames in expected.items():
+        if cause != "not_whitelisted":      # the GPS distractors are dropped there too
+            assert counters[channel][cause] == frames, (channel, cause)
+    assert sum(frames for frames in expected.values()) >= 4
+
+
 @pytest.mark.slow
 def test_main_job_on_verilator_matches_the_truth(tmp_path, capsys, external):
     """The README's main command: the default scenario through the logger's RTL (the fast
