@@ -329,9 +329,9 @@ def paper_b(truth, out_dir, *, seed=0, quick=False):
                        "fits": fits, "trials": trials, "claim_holds": holds})
     source = "the scenario's A, b" if "A" in errors else "the project's default error model"
     lines = ["## Paper B: mean heading error against samples per octant (their Fig. 5)", "",
-             f"Flights made for it (sim.stimulus.scenario.make_flight, seed {seed}): samples taken by "
-             "the paper's octant strategy (each octant about the running centroid takes at "
-             "most n, fit when all eight are full) from a tumbling flight (full sphere, "
+             f"Flights made for it (sim.stimulus.scenario.make_flight, seed {seed}): samples "
+             "taken by the paper's octant strategy (each octant about the running centroid "
+             "takes at most n, fit when all eight are full) from a tumbling flight (full sphere, "
              f"{B_RATE_HZ:g} Hz), an algebraic ellipsoid fit (calib.ellipsoid, gated on the "
              "same count), then the tilt-compensated true heading (calib.heading, IGRF "
              f"declination) of a separate {seconds:g} s level flight (±30° roll and pitch, "

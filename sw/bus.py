@@ -1,8 +1,9 @@
 """The firmware's view of the hardware: asynchronous register access and block data.
 
 Firmware is written once against these interfaces. Backends implement them: the Amaranth
-simulator (:mod:`maglog.sim.backends.amaranth`), cocotb (:mod:`maglog.sim.backends.cocotb_sdio`) and the
-transaction-level model of the logger (:mod:`maglog.sim.models.logger`).
+simulator (:mod:`maglog.sim.backends.amaranth`), cocotb
+(:mod:`maglog.sim.backends.cocotb_sdio`) and the transaction-level model of the logger
+(:mod:`maglog.sim.models.logger`).
 
 Two exceptions end the firmware from outside; they derive from :class:`BaseException` so
 that no ``except Exception`` in the firmware catches them.

@@ -22,13 +22,14 @@ from amaranth.sim import Simulator
 from ...hw.arch.sdram import MT48LC4M32B2
 from ...sw.bus import BlockPort, RegisterBus
 from ..models.sdcard import SdBus, SdCard
-from ..models.sdram import SdramChip
+from ..models.sdram import PINS as SDRAM_PINS, SdramChip
 from ..runners.result import SystemResult
 
 
-__all__ = ["CLOCK_HZ", "CLOCK_PERIOD", "CLOCK_NS", "ClockedBus", "run_simulation", "drive_line", "feed_stream", "FrameAssembler",
-           "collect_frames", "collect_payloads", "CsrBus", "StreamBlockPort", "run_card", "run_driver",
-           "run_sdram", "run_requests", "WishboneBus", "run_system"]
+__all__ = ["CLOCK_HZ", "CLOCK_PERIOD", "CLOCK_NS", "ClockedBus", "run_simulation", "drive_line",
+           "feed_stream", "FrameAssembler", "collect_frames", "collect_payloads", "CsrBus",
+           "StreamBlockPort", "run_card", "run_driver", "run_sdram", "run_requests",
+           "WishboneBus", "run_system"]
 
 #: The simulated system clock of every backend (Amaranth simulator and cocotb): 50 MHz, as
 #: the boards' oscillators. Periods below are derived from it, never written again.
@@ -306,16 +307,13 @@ def run_driver(firmware, card, *, sys_clock_hz, deadline=0.2, extra=(), name="sd
 
 # -- the SDRAM chip on the controller's pins --------------------------------------------------
 
-_PINS = ("cke", "cs_n", "ras_n", "cas_n", "we_n", "ba", "a", "dqm", "dq_oe")
-
-
 async def run_sdram(ctx, pins, chip):
     """Run ``chip`` on the controller's ``pins``: at each clock edge the model sees the pin
     values the edge samples, and what it drives appears on ``dq_i`` for the next edge.
     (A per-cycle model: one Python call a clock.)"""
-    signals = [getattr(pins, name) for name in _PINS] + [pins.dq_o]
+    signals = [getattr(pins, name) for name in SDRAM_PINS] + [pins.dq_o]
     async for _, _, *values in ctx.tick().sample(*signals):
-        levels = dict(zip(_PINS, values))
+        levels = dict(zip(SDRAM_PINS, values))
         out = chip.edge(**levels, dq=values[-1])
         ctx.set(pins.dq_i, 0 if out is None else out)
 

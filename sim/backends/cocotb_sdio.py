@@ -2,8 +2,9 @@
 SD host's generated Verilog against the card model.
 
 Backends: :class:`CsrBus` (the firmware's register bus on the CSR port), :class:`BlockPort`
-(the host's byte streams), :func:`run_card` (the card model on the pins: it samples at each
-rising edge of ``sd__clk`` and drives after the falling edge, as a default-speed card).
+(the host's byte streams), :func:`run_card` (the card model on an :class:`SdPins`: it samples
+at each rising edge of the SD clock and drives after the falling edge, as a default-speed
+card; the one loop of every cocotb top, the host's own and the whole logger's).
 Python runs per register access, per byte and per SD clock edge, never per system clock.
 
 The stimulus's ``sys_clock_hz`` is the one figure for the system clock: the simulated clock
@@ -27,7 +28,7 @@ from ...sw.bus import BlockPort as _BlockPort
 from ...sw.bus import RegisterBus
 
 
-__all__ = ["CsrBus", "BlockPort", "ClockMeter", "run_card"]
+__all__ = ["CsrBus", "BlockPort", "ClockMeter", "SdPins", "run_card"]
 
 #: The card states of identification mode (PLSS §4.2, at most 400 kHz); it ends with CMD3.
 IDENTIFICATION_STATES = (CardState.IDLE, CardState.READY, CardState.IDENT)
@@ -150,21 +151,50 @@ class ClockMeter:
         return None if self.shortest_ns is None else 1e9 / self.shortest_ns
 
 
-async def run_card(dut, card, meter=None):
-    """The card model on the pins through an :class:`~maglog.sim.models.sdcard.SdBus` (see
-    the module documentation); ``meter`` (a :class:`ClockMeter`) sees every rising edge of
-    the SD clock."""
+class SdPins:
+    """The SD pins of a cocotb top, ``{prefix}clk``, ``{prefix}cmd_o`` ... (``sd__`` on the
+    SD host's own Verilog): :attr:`clk`, :meth:`host` (what the host drives, read in the
+    read-only phase after a rising edge) and :meth:`drive` (the levels the host reads)."""
+    def __init__(self, dut, prefix="sd__"):
+        self.clk = getattr(dut, prefix + "clk")
+        self._outputs = [getattr(dut, prefix + name)
+                         for name in ("cmd_oe", "cmd_o", "dat_oe", "dat_o")]
+        self._cmd_i = getattr(dut, prefix + "cmd_i")
+        self._dat_i = getattr(dut, prefix + "dat_i")
+
+    def host(self):
+        """``(cmd_oe, cmd_o, dat_oe, dat_o)``."""
+        return tuple(int(pin.value) for pin in self._outputs)
+
+    def drive(self, cmd, dat):
+        self._cmd_i.value = cmd
+        self._dat_i.value = dat
+
+
+#: The levels of released lines (pulled up), which the host reads before the card drives.
+RELEASED_LEVELS = (1, 0xF)
+
+
+async def run_card(pins, card, meter=None):
+    """The card model on ``pins`` (an :class:`SdPins`) through an
+    :class:`~maglog.sim.models.sdcard.SdBus`: the bus resolved at each rising edge of the
+    SD clock, the card's levels applied after the falling edge (and only when they change:
+    one simulator write fewer an edge). ``meter`` (a :class:`ClockMeter`) sees every rising
+    edge."""
     bus = SdBus(card)
+    rising, falling, read_only = RisingEdge(pins.clk), FallingEdge(pins.clk), ReadOnly()
+    driven = RELEASED_LEVELS
+    pins.drive(*driven)
     while True:
-        await RisingEdge(dut.sd__clk)
+        await rising
         if meter is not None:
             meter.rising_edge(card)
-        await ReadOnly()
-        cmd, dat = bus.rising_edge(int(dut.sd__cmd_oe.value), int(dut.sd__cmd_o.value),
-                                   int(dut.sd__dat_oe.value), int(dut.sd__dat_o.value))
-        await FallingEdge(dut.sd__clk)
-        dut.sd__cmd_i.value = cmd
-        dut.sd__dat_i.value = dat
+        await read_only
+        levels = bus.rising_edge(*pins.host())
+        await falling
+        if levels != driven:
+            pins.drive(*levels)
+            driven = levels
 
 
 @cocotb.test()
@@ -195,7 +225,7 @@ async def write_read_back(dut):
     card = SdCard(image, seed=stimulus["seed"], faults=Faults(**stimulus.get("faults", {})))
     port = BlockPort(dut)
     meter = ClockMeter()
-    cocotb.start_soon(run_card(dut, card, meter))
+    cocotb.start_soon(run_card(SdPins(dut), card, meter))
     cocotb.start_soon(port.source())
     cocotb.start_soon(port.sink())
     bus = CsrBus(dut, clock_period_s=1 / sys_clock_hz)

@@ -14,15 +14,14 @@ from cocotb.clock import Clock
 from cocotb.triggers import ReadOnly, RisingEdge
 
 from ...hw.arch import sdram as arch
+from ..models.sdram import PINS
 from .amaranth import CLOCK_HZ, CLOCK_NS
-
-_PINS = ("cke", "cs_n", "ras_n", "cas_n", "we_n", "ba", "a", "dqm", "dq_oe")
 
 
 async def run_chip(dut, model, *, prefix="pins__"):
     """The chip model on the ``{prefix}*`` ports (``pins__`` on the controller's own Verilog,
     ``sdram_`` on the logger's): it sees the values each edge samples."""
-    pins = [(name, getattr(dut, prefix + name)) for name in _PINS]
+    pins = [(name, getattr(dut, prefix + name)) for name in PINS]
     dq_o, dq_i = getattr(dut, prefix + "dq_o"), getattr(dut, prefix + "dq_i")
     while True:
         await ReadOnly()

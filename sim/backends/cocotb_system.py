@@ -9,8 +9,9 @@ caller's process and prepares a JSON stimulus and the card image; the cocotb tes
 :func:`system` runs in the simulator's process and leaves the card image and a JSON result.
 
 Timing: the clock is the simulator's own (``impl="gpi"``). The reset ends at a falling edge;
-that instant is cycle 0 of the scenario (:meth:`~maglog.sim.stimulus.system.SystemScenario.pin_changes`)
-and of the firmware's clock (``now()``). Every pin the test drives changes half a clock
+that instant is cycle 0 of the scenario
+(:meth:`~maglog.sim.stimulus.system.SystemScenario.pin_changes`) and of the firmware's clock
+(``now()``). Every pin the test drives changes half a clock
 away from a rising edge. Python runs per SDRAM command (and the chip model, which checks
 every timing rule, once a clock: see :class:`SkippingChip`), per SD clock edge, per
 register access and per pin change.
@@ -363,8 +364,8 @@ def _unpacker(dut):
 
 class SkippingChip:
     """The SDRAM chip model on the top's ``sdram_*`` pins, as
-    :func:`maglog.sim.backends.cocotb_sdram.run_chip` runs it (the model sees the levels every rising
-    edge samples, and what it returns is on ``dq_i`` for the next edge), but without a
+    :func:`maglog.sim.backends.cocotb_sdram.run_chip` runs it (the model sees the levels every
+    rising edge samples, and what it returns is on ``dq_i`` for the next edge), but without a
     simulator callback per clock while the bus is quiet.
 
     Quiet: the controller holds a NOP (no command, DQ not driven: ``sim_sdram_command`` low)
@@ -421,32 +422,21 @@ class SkippingChip:
             dq_i.value = 0 if out is None else out
 
 
-async def run_card(dut, card):
-    """The SD card model on the top's ``sd_*`` pins, as :func:`maglog.sim.backends.cocotb_sdio.run_card`
-    runs it on the host's ``sd__*`` ports: it samples at each rising edge of ``sd_clk`` and
-    drives after the falling edge; a line driven by both sides is a protocol error."""
-    from cocotb.triggers import FallingEdge, ReadOnly, RisingEdge
-    rising, falling, read_only = RisingEdge(dut.sd_clk), FallingEdge(dut.sd_clk), ReadOnly()
-    packed, cmd_i, dat_i = dut.sim_sd, dut.sd_cmd_i, dut.sd_dat_i
-    card_cmd_oe, card_cmd, card_dat_oe, card_dat = 0, 1, 0, 0xF
-    driven = (1, 0xF)                   # released lines (pulled up), as the test starts
-    while True:
-        await rising
-        await read_only
-        word = int(packed.value)        # SD_PACKED: cmd_oe, cmd_o, dat_oe, dat_o[3:0]
-        host_cmd_oe, host_dat_oe = word & 1, word >> 2 & 1
-        if host_cmd_oe and card_cmd_oe:
-            card.report("bus contention on CMD")
-        if host_dat_oe and card_dat_oe:
-            card.report("bus contention on DAT")
-        cmd = word >> 1 & 1 if host_cmd_oe else (card_cmd if card_cmd_oe else 1)
-        released = (card_dat & card_dat_oe) | (0xF & ~card_dat_oe)
-        dat = word >> 3 & 0xF if host_dat_oe else released
-        card_cmd_oe, card_cmd, card_dat_oe, card_dat = card.edge(cmd, dat)
-        await falling
-        levels = (card_cmd if card_cmd_oe else 1, (card_dat & card_dat_oe) | (0xF & ~card_dat_oe))
-        if levels != driven:
-            cmd_i.value, dat_i.value = driven = levels
+class PackedSdPins:
+    """The top's ``sd_*`` pins as :func:`maglog.sim.backends.cocotb_sdio.run_card` takes
+    them (see :class:`~maglog.sim.backends.cocotb_sdio.SdPins`), the host's outputs read in
+    one go from ``sim_sd`` (:data:`SD_PACKED`: cmd_oe, cmd_o, dat_oe, dat_o[3:0])."""
+    def __init__(self, dut):
+        self.clk = dut.sd_clk
+        self._packed, self._cmd_i, self._dat_i = dut.sim_sd, dut.sd_cmd_i, dut.sd_dat_i
+
+    def host(self):
+        word = int(self._packed.value)
+        return word & 1, word >> 1 & 1, word >> 2 & 1, word >> 3 & 0xF
+
+    def drive(self, cmd, dat):
+        self._cmd_i.value = cmd
+        self._dat_i.value = dat
 
 
 async def _drive_pins(dut, changes, period_ps):
@@ -492,6 +482,7 @@ async def system(dut):
     from ...hw.arch import sdram as arch_sdram
     from ...hw.top import Logger
     from ...sw.app import LoggerApp
+    from .cocotb_sdio import run_card
     from .cocotb_sdram import run_chip
     from ..models.card_image import CardImage
     from ..models.sdcard import SdCard
@@ -533,7 +524,7 @@ async def system(dut):
     else:
         chip_side = SkippingChip(dut, sdram, period_ps=period_ps, edge_ps=edge_ps)
         cocotb.start_soon(chip_side.run())
-    cocotb.start_soon(run_card(dut, card))
+    cocotb.start_soon(run_card(PackedSdPins(dut), card))
     cocotb.start_soon(_drive_pins(dut, changes, period_ps))
 
     bus = WishboneBus(dut, clk_freq=clk_freq, clock_period_ps=period_ps)

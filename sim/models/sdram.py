@@ -91,7 +91,11 @@ from dataclasses import dataclass
 
 from ...hw.arch.sdram import A10, BurstLength, Chip, Command
 
-__all__ = ["SdramChip", "SdramTimingError", "ClockTiming", "decode_mode_register"]
+__all__ = ["SdramChip", "SdramTimingError", "ClockTiming", "decode_mode_register", "PINS"]
+
+#: The controller's outputs the chip samples at each rising edge, as :meth:`SdramChip.edge`
+#: takes them (with ``dq``, the controller's ``dq_o``); every simulator adapter reads these.
+PINS = ("cke", "cs_n", "ras_n", "cas_n", "we_n", "ba", "a", "dqm", "dq_oe")
 
 _BYTE_BITS = 8
 #: Mode register fields. Ref: MT48LC4M32B2 / IS42S16160 data sheets, "Mode Register

@@ -29,7 +29,8 @@ CLOCK_NS = amaranth_backend.CLOCK_NS
 
 
 class Segments(list):
-    """A piece of a line given as ``(level, cycles)`` pairs (see :mod:`maglog.sim.stimulus.uart_line`)."""
+    """A piece of a line given as ``(level, cycles)`` pairs (see
+    :mod:`maglog.sim.stimulus.uart_line`)."""
 
 
 @dataclass

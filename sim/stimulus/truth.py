@@ -2,9 +2,10 @@
 
 Frame counts are over the whole run from power-up, from the reference filter
 (:mod:`maglog.sim.reference`) fed with what each channel's receiver reports
-(:meth:`maglog.sim.stimulus.system.SystemScenario.received`: the bytes as sent, or, for bytes sent at
-an off-nominal rate, :func:`maglog.sim.stimulus.uart_line.decode` of their line at the gateware's
-nominal bit time). The recorded log is :meth:`~maglog.sim.stimulus.system.SystemScenario.recorded_frames`.
+(:meth:`maglog.sim.stimulus.system.SystemScenario.received`: the bytes as sent, or, for
+bytes sent at an off-nominal rate, :func:`maglog.sim.stimulus.uart_line.decode` of their line
+at the gateware's nominal bit time). The recorded log is
+:meth:`~maglog.sim.stimulus.system.SystemScenario.recorded_frames`.
 
 Noise floor: the RMS residual ``|K b - c| - F_cs`` a perfect calibration leaves against the
 cesium reference interpolated to the magnetometer's samples. With ``u_i`` the unit field

@@ -1,5 +1,5 @@
-"""The whole logger under cocotb (sim/backends/cocotb_system.py): the generated Verilog with the SDRAM
-and SD card models on its pins and the firmware on its Wishbone port.
+"""The whole logger under cocotb (sim/backends/cocotb_system.py): the generated Verilog with
+the SDRAM and SD card models on its pins and the firmware on its Wishbone port.
 
 The application's recording of the short scenario must leave a card that ``fsck.fat -n``
 finds clean and whose LOG file holds exactly the frames the reference filter keeps between
@@ -13,9 +13,11 @@ import pytest
 from maglog.calib.card import read_logs
 from maglog.hw.top import Logger, generate_verilog
 from maglog.sim.models.card_image import CardImage
+from maglog.sim.models.sdram import PINS as SDRAM_PINS
 from maglog.sim.stimulus.system import short_scenario
-from maglog.sim.backends.cocotb_system import (RESET_CYCLES, SDRAM_PACKED, TOPLEVEL, run_system_cocotb,
-                                      settings_to_json, system_verilog)
+from maglog.sim.backends.cocotb_system import (RESET_CYCLES, SDRAM_PACKED, TOPLEVEL,
+                                               run_system_cocotb, settings_to_json,
+                                               system_verilog)
 from maglog.sw.app import AppSettings
 from maglog.sw.fat32 import format_image
 
@@ -65,6 +67,8 @@ def test_the_wrapper_has_the_loggers_ports_and_the_packed_sdram_and_sd_pins():
     assert ("assign sim_sdram = {sdram_dq_o, sdram_dqm, sdram_a, sdram_ba, sdram_dq_oe, "
             "sdram_we_n, sdram_cas_n, sdram_ras_n, sdram_cs_n, sdram_cke};") in wrapper
     assert tuple(SDRAM_PACKED[:6]) == ("cke", "cs_n", "ras_n", "cas_n", "we_n", "dq_oe")
+    # Every pin the chip model takes, and only those (dq_o is its dq).
+    assert sorted(SDRAM_PACKED) == sorted((*SDRAM_PINS, "dq_o"))
     assert "assign sim_sd = {sd_dat_o, sd_dat_oe, sd_cmd_o, sd_cmd_oe};" in wrapper
 
 
