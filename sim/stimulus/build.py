@@ -104,10 +104,6 @@ class Stimulus:
 
 # --- frames --------------------------------------------------------------------------------
 
-def _seconds_of_day(when):
-    return when.hour * 3600 + when.minute * 60 + when.second + when.microsecond / 1e6
-
-
 def _capture_bytes(scenario, name):
     text = scenario.channels[name].capture
     where = f"[channels.{name}] capture"
@@ -165,7 +161,6 @@ def _gps_items(scenario, track, rng, horizon, outages):
     gps = scenario.gps
     sky = [(prn, int(rng.integers(5, 86)), int(rng.integers(0, 360)), int(rng.integers(25, 49)))
            for prn in (2, 5, 12, 13, 15, 18, 20, 24, 25, 29, 31, 10)[:gps.satellites]]
-    prns = [s[0] for s in sky]
     items = []
     n = 0
     while gps.first_s + n + gps.offset_s < horizon:
@@ -179,24 +174,10 @@ def _gps_items(scenario, track, rng, horizon, outages):
         vn, ve = float(track.at(epoch, track.v_north)), float(track.at(epoch, track.v_east))
         course = math.degrees(math.atan2(ve, vn)) % 360
         knots = math.hypot(vn, ve) * _MS_TO_KNOTS
-        fix = epoch >= gps.fix_s
-        talker = gps.talker
-        group = []
-        if gps.distractors:
-            group.append(("RMC", sentences.rmc(when, lat, lon, speed_knots=knots,
-                                               course_deg=course, valid=fix, talker=talker)))
-        group.append(("VTG", sentences.vtg(course, knots, talker=talker)))
-        group.append(("GGA", sentences.gga(_seconds_of_day(when), lat, lon,
-                                           quality=1 if fix else 0,
-                                           satellites=gps.satellites if fix else 3,
-                                           hdop=gps.hdop if fix else 99.0, altitude_m=alt,
-                                           geoid_m=gps.geoid_m, talker=talker)))
-        if gps.distractors:
-            group.append(("GSA", sentences.gsa(prns if fix else [], fix=3 if fix else 1,
-                                               talker=talker)))
-            for line in sentences.gsv(sky, talker=talker).splitlines(keepends=True):
-                group.append(("GSV", line))
-        group.append(("ZDA", sentences.zda(when, talker=talker)))
+        group = sentences.gps_epoch(when, lat, lon, course_deg=course, speed_knots=knots,
+                                    sky=sky, fix=epoch >= gps.fix_s, hdop=gps.hdop,
+                                    altitude_m=alt, geoid_m=gps.geoid_m,
+                                    distractors=gps.distractors, talker=gps.talker)
         items += [Item(t, 1, data, kind, seq=n - 1) for kind, data in group]
     return items
 

@@ -6,7 +6,9 @@ included, with a correct checksum where the format has one:
 - NMEA 0183 sentences of the GPS receiver: :func:`gga`, :func:`zda`, :func:`vtg` (the ones the
   logger keeps) and the distractors :func:`rmc`, :func:`gsa`, :func:`gsv` (the ones it drops);
 - the magnetometer's proprietary ``$PMAG1`` sentence: :func:`pmag1`;
-- the Geometrics G-882 style cesium line: :func:`cesium`.
+- the Geometrics G-882 style cesium line: :func:`cesium`;
+- one second of a GPS receiver's output, the sentences above in its order: :func:`gps_epoch`
+  (the one source of GPS epochs for the scenarios and the demo streams).
 
 :func:`nmea_sentence` wraps any body as ``$`` body ``*hh`` line end and lets tests force a
 wrong checksum. The formats are those of ``shared/DESIGN.md`` ("Formats").
@@ -35,6 +37,7 @@ __all__ = [
     "rmc",
     "gsa",
     "gsv",
+    "gps_epoch",
 ]
 
 #: Line end the instruments send.
@@ -448,3 +451,48 @@ def gsv(
             ]
         out += _sentence(talker, "GSV", fields, eol)
     return bytes(out)
+
+
+#: GGA's satellite count and HDOP while the receiver has no fix.
+NO_FIX_SATELLITES = 3
+NO_FIX_HDOP = 99.0
+
+
+def gps_epoch(
+    when: _dt.datetime,
+    lat_deg: float,
+    lon_deg: float,
+    *,
+    course_deg: float,
+    speed_knots: float,
+    sky: Sequence[tuple[int, int, int, int | None]],
+    fix: bool = True,
+    hdop: float = 0.9,
+    altitude_m: float = 100.0,
+    geoid_m: float = 45.0,
+    distractors: bool = True,
+    talker: str = "GP",
+) -> list[tuple[str, bytes]]:
+    """One second of a GPS receiver's output at ``when``, as ``(type, sentence)`` pairs in the
+    order it sends them: RMC, VTG, GGA, GSA, one GSV per line, ZDA (RMC, GSA and GSV only
+    with ``distractors``). ``sky``: the satellites in view, ``(prn, elevation, azimuth,
+    snr)``, all of them used for the fix. Without a ``fix``: RMC void, GGA quality 0 with
+    :data:`NO_FIX_SATELLITES` satellites and HDOP :data:`NO_FIX_HDOP`, GSA fix 1 with no
+    PRNs."""
+    seconds_of_day = when.hour * 3600 + when.minute * 60 + when.second + when.microsecond / 1e6
+    sky = list(sky)
+    epoch = []
+    if distractors:
+        epoch.append(("RMC", rmc(when, lat_deg, lon_deg, speed_knots=speed_knots,
+                                 course_deg=course_deg, valid=fix, talker=talker)))
+    epoch.append(("VTG", vtg(course_deg, speed_knots, talker=talker)))
+    epoch.append(("GGA", gga(seconds_of_day, lat_deg, lon_deg, quality=1 if fix else 0,
+                             satellites=len(sky) if fix else NO_FIX_SATELLITES,
+                             hdop=hdop if fix else NO_FIX_HDOP, altitude_m=altitude_m,
+                             geoid_m=geoid_m, talker=talker)))
+    if distractors:
+        epoch.append(("GSA", gsa([prn for prn, *_ in sky] if fix else [], fix=3 if fix else 1,
+                                 talker=talker)))
+        epoch += [("GSV", line) for line in gsv(sky, talker=talker).splitlines(keepends=True)]
+    epoch.append(("ZDA", zda(when, talker=talker)))
+    return epoch

@@ -3,10 +3,12 @@
 :func:`demo_streams` gives a few seconds of a flight's serial bytes per channel: the
 magnetometer's ``$PMAG1`` at 20 Hz, the GPS receiver's NMEA at 1 Hz (GGA with a fix, ZDA,
 VTG, and the distractors RMC, GSA, GSV), and the cesium magnetometer at 10 Hz, with a few
-deliberate faults at seeded places:
+deliberate faults at seeded places. Its sentences come from :mod:`.sentences` as the
+scenarios' do, a GPS second from the same :func:`~.sentences.gps_epoch`; what is the
+demo's own is the straight, level track and the slowly varying fields. The faults:
 
 - one ``$PMAG1`` with a bad checksum;
-- one GGA with fix quality 0 (kept, but raises no flush event);
+- one epoch without a fix (its GGA has quality 0: kept, but raises no flush event);
 - a burst of non-printable bytes inside one cesium frame;
 - one GGA or VTG cut short (no ``*hh``, no line end), so the next ``$`` drops it.
 
@@ -141,27 +143,10 @@ def _gps_stream(rng: np.random.Generator, seconds: float) -> bytes:
         when = FLIGHT_START + _dt.timedelta(seconds=elapsed)
         lat = START_LAT_DEG + north_ms * elapsed / _METRES_PER_DEGREE_LAT
         lon = START_LON_DEG + east_ms * elapsed / metres_per_degree_lon
-        seconds_of_day = when.hour * 3600 + when.minute * 60 + when.second + when.microsecond / 1e6
-        epoch = [
-            ("RMC", sentences.rmc(when, lat, lon, speed_knots=knots, course_deg=COURSE_DEG)),
-            ("VTG", sentences.vtg(COURSE_DEG, knots)),
-            (
-                "GGA",
-                sentences.gga(
-                    seconds_of_day,
-                    lat,
-                    lon,
-                    quality=0 if index == no_fix else 1,
-                    satellites=len(SATELLITES_USED),
-                    altitude_m=ALTITUDE_M,
-                    geoid_m=GEOID_M,
-                ),
-            ),
-            ("GSA", sentences.gsa(SATELLITES_USED)),
-            ("GSV", sentences.gsv(satellites)),
-            ("ZDA", sentences.zda(when)),
-        ]
-        epochs.append(epoch)
+        epochs.append(sentences.gps_epoch(when, lat, lon, course_deg=COURSE_DEG,
+                                          speed_knots=knots, sky=satellites,
+                                          fix=index != no_fix, altitude_m=ALTITUDE_M,
+                                          geoid_m=GEOID_M))
     # Cut one GGA (with a fix) or VTG short; both are always followed by another sentence.
     choices = [
         (epoch, position)

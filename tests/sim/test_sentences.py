@@ -263,3 +263,29 @@ def test_all_builders_end_in_eol() -> None:
         assert NMEA_RE.fullmatch(frame), frame
         assert checksum_ok(frame)
     assert sentences.CRLF == b"\r\n"
+
+
+# --- one second of a GPS receiver ---------------------------------------------------------
+
+
+def test_gps_epoch_is_one_receiver_second_in_order_with_and_without_a_fix() -> None:
+    when = dt.datetime(2024, 6, 1, 10, 0, 1, 500_000, tzinfo=dt.timezone.utc)
+    sky = [(2, 40, 100, 30), (5, 20, 200, None), (12, 60, 10, 45), (13, 5, 300, 25),
+           (15, 85, 0, 41)]
+    where = dict(course_deg=90.0, speed_knots=10.0, sky=sky, altitude_m=120.0, geoid_m=47.4)
+    fixed = sentences.gps_epoch(when, 47.5, 8.25, **where)
+    assert [kind for kind, _ in fixed] == ["RMC", "VTG", "GGA", "GSA", "GSV", "GSV", "ZDA"]
+    assert b"".join(s for kind, s in fixed if kind == "GSV") == gsv(sky)
+    assert fixed[0][1] == rmc(when, 47.5, 8.25, speed_knots=10.0, course_deg=90.0)
+    assert fixed[2][1] == gga(36001.5, 47.5, 8.25, satellites=5, altitude_m=120.0,
+                              geoid_m=47.4)
+    assert fixed[3][1] == gsa([2, 5, 12, 13, 15])
+    assert fixed[-1][1] == zda(when)
+    lost = dict(sentences.gps_epoch(when, 47.5, 8.25, fix=False, **where))
+    assert lost["RMC"] == rmc(when, 47.5, 8.25, speed_knots=10.0, course_deg=90.0, valid=False)
+    assert lost["GGA"] == gga(36001.5, 47.5, 8.25, quality=0, satellites=3, hdop=99.0,
+                              altitude_m=120.0, geoid_m=47.4)
+    assert lost["GSA"] == gsa([], fix=1)
+    bare = sentences.gps_epoch(when, 47.5, 8.25, distractors=False, talker="GN", **where)
+    assert [kind for kind, _ in bare] == ["VTG", "GGA", "ZDA"]
+    assert all(s.startswith(b"$GN") for _, s in bare)
