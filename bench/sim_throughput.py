@@ -27,7 +27,8 @@ from pathlib import Path
 from maglog.hw.arch import uart as arch_uart
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
-from maglog.sim.runners.frontend import BACKENDS, CLOCK_NS, ChannelStimulus, FrontEndBench
+from maglog.sim.runners.frontend import BACKENDS, CLOCK_NS, FrontEndBench
+from maglog.sim.stimulus.uart_line import ChannelStimulus
 from maglog.sim.stimulus.sentences import pmag1
 
 # The helper beside this script: no __pycache__ in the tree for it.

@@ -206,7 +206,8 @@ def _table(header, rows):
 
 def _cmd_demo(args):
     from ..hw.frontend import DEFAULT_CHANNELS, generate_verilog
-    from ..sim.runners.frontend import ChannelStimulus, FrontEndBench, _drain_cycles
+    from ..sim.runners.frontend import FrontEndBench, _drain_cycles
+    from ..sim.stimulus.uart_line import ChannelStimulus
     from ..sim.reference import Kind, reference_filter
     from ..sim.stimulus.streams import demo_streams
 

@@ -12,71 +12,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ...hw.arch import frames as arch_frames
-from ...hw.arch import uart as arch_uart
 from ...hw.frame_filter import ChannelKind, FrameFilter
 from ...hw.frontend import ChannelConfig, DEFAULT_CHANNELS, FrontEnd, TOPLEVEL_NAME, generate_verilog
 from ..backends import amaranth as amaranth_backend
 from ..backends.cocotb import CocotbBuild
-from ..stimulus.uart_line import encode
+from ..stimulus.uart_line import ChannelStimulus, Segments
 
 
-__all__ = ["BACKENDS", "Segments", "ChannelStimulus", "FrontEndResult", "FrontEndBench",
-           "run_frontend", "run_frame_filter"]
+__all__ = ["BACKENDS", "FrontEndResult", "FrontEndBench", "run_frontend", "run_frame_filter"]
 
 BACKENDS = ("amaranth", "icarus", "verilator")
 #: cocotb's clock period, the Amaranth simulator's (one constant for both).
 CLOCK_NS = amaranth_backend.CLOCK_NS
-
-
-class Segments(list):
-    """A piece of a line given as ``(level, cycles)`` pairs (see
-    :mod:`maglog.sim.stimulus.uart_line`)."""
-
-
-@dataclass
-class ChannelStimulus:
-    """What one serial line carries.
-
-    ``data`` is sent as plain 8N1 characters back to back at the divisor's nominal bit time
-    (by cocotbext-uart's ``UartSource`` on the cocotb backends); ``segments`` are
-    ``(level, cycles)`` pairs, for baud error and line faults. ``parts`` mixes both in
-    order: each item is ``bytes`` or a :class:`Segments`. ``expected`` frames, if given, are
-    checked in order by the scoreboard as they arrive.
-    """
-    divisor: int
-    data: bytes | None = None
-    segments: list | None = None
-    expected: list | None = None
-    parts: list | None = None
-
-    def __post_init__(self):
-        given = [x is not None for x in (self.data, self.segments, self.parts)]
-        if sum(given) != 1:
-            raise ValueError("A channel's stimulus is one of data, segments or parts")
-        if self.parts is None:
-            self.parts = [bytes(self.data)] if self.data is not None else [
-                Segments(self.segments)]
-        for part in self.parts:
-            if not isinstance(part, (bytes, Segments)):
-                raise ValueError(f"A stimulus part is bytes or Segments, not {part!r}")
-
-    @property
-    def bit_cycles(self):
-        return arch_uart.OVERSAMPLING * self.divisor
-
-    def line_segments(self):
-        segments = []
-        for part in self.parts:
-            if isinstance(part, Segments):
-                segments.extend(part)
-            else:
-                # Back to back from the first start bit, as UartSource sends them.
-                segments.extend(encode(part, bit_cycles=self.bit_cycles, lead_idle_bits=1.0,
-                                       tail_idle_bits=0.0).segments)
-        return segments
-
-    def line_cycles(self):
-        return sum(cycles for _, cycles in self.line_segments())
 
 
 @dataclass

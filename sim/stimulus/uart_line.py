@@ -4,6 +4,8 @@
 low, eight data bits LSB first, stop bit high) at a given bit period in clock cycles, with a
 baud-rate error and the faults a receiver must survive: framing errors, breaks and short
 glitches. Alongside the trace it gives the :class:`RxEvent` list an ideal receiver reports.
+:class:`ChannelStimulus` is what one line of a bench carries: bytes at the nominal bit time,
+:class:`Segments` of levels, or both in order.
 
 :func:`decode` is that ideal receiver, kept deliberately plain (edge, centre sampling,
 wait for the line to go high after an error); tests use it to cross-check :func:`encode`.
@@ -22,8 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...hw.arch import uart as arch_uart
+
 __all__ = ["RxEvent", "LineTrace", "encode", "decode", "segments_from_levels", "MIN_BREAK_BITS",
-           "GLITCH_MAX_BITS"]
+           "GLITCH_MAX_BITS", "Segments", "ChannelStimulus"]
 
 IDLE = 1
 SPACE = 0
@@ -311,3 +315,53 @@ def segments_from_levels(levels) -> list[tuple[int, int]]:
     starts = np.concatenate(([0], edges))
     lengths = np.diff(np.concatenate((starts, [levels.size])))
     return [(int(levels[a]), int(n)) for a, n in zip(starts, lengths)]
+
+
+class Segments(list):
+    """A piece of a line given as ``(level, cycles)`` pairs (as :func:`encode` gives)."""
+
+
+@dataclass
+class ChannelStimulus:
+    """What one serial line carries.
+
+    ``data`` is sent as plain 8N1 characters back to back at the divisor's nominal bit time
+    (by cocotbext-uart's ``UartSource`` on the cocotb backends); ``segments`` are
+    ``(level, cycles)`` pairs, for baud error and line faults. ``parts`` mixes both in
+    order: each item is ``bytes`` or a :class:`Segments`. ``expected`` frames, if given, are
+    checked in order by the scoreboard as they arrive.
+    """
+    divisor: int
+    data: bytes | None = None
+    segments: list | None = None
+    expected: list | None = None
+    parts: list | None = None
+
+    def __post_init__(self):
+        given = [x is not None for x in (self.data, self.segments, self.parts)]
+        if sum(given) != 1:
+            raise ValueError("A channel's stimulus is one of data, segments or parts")
+        if self.parts is None:
+            self.parts = [bytes(self.data)] if self.data is not None else [
+                Segments(self.segments)]
+        for part in self.parts:
+            if not isinstance(part, (bytes, Segments)):
+                raise ValueError(f"A stimulus part is bytes or Segments, not {part!r}")
+
+    @property
+    def bit_cycles(self):
+        return arch_uart.OVERSAMPLING * self.divisor
+
+    def line_segments(self):
+        segments = []
+        for part in self.parts:
+            if isinstance(part, Segments):
+                segments.extend(part)
+            else:
+                # Back to back from the first start bit, as UartSource sends them.
+                segments.extend(encode(part, bit_cycles=self.bit_cycles, lead_idle_bits=1.0,
+                                       tail_idle_bits=0.0).segments)
+        return segments
+
+    def line_cycles(self):
+        return sum(cycles for _, cycles in self.line_segments())

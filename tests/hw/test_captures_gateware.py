@@ -10,7 +10,8 @@ import pytest
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig
 from maglog.sim.stimulus.captures import capture_files, load_capture
-from maglog.sim.runners.frontend import ChannelStimulus, FrontEndBench, Segments
+from maglog.sim.runners.frontend import FrontEndBench
+from maglog.sim.stimulus.uart_line import ChannelStimulus, Segments
 from maglog.sim.runners.frontend import run_frame_filter as run_filter
 from maglog.sim.reference import reference_filter
 

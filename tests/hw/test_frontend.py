@@ -8,10 +8,10 @@ import pytest
 from maglog.hw.frame_filter import ChannelKind
 from maglog.hw.frontend import ChannelConfig, DEFAULT_CHANNELS, FrontEnd, divisor_for
 from maglog.sim.stimulus import sentences
-from maglog.sim.runners.frontend import ChannelStimulus, FrontEndBench
+from maglog.sim.runners.frontend import FrontEndBench
+from maglog.sim.stimulus.uart_line import ChannelStimulus, encode, segments_from_levels
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.stimulus.streams import demo_streams
-from maglog.sim.stimulus.uart_line import encode, segments_from_levels
 
 
 def test_demo_flight_matches_reference():

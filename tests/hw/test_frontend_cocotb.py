@@ -12,10 +12,10 @@ import pytest
 from maglog.hw.frontend import DEFAULT_CHANNELS
 from maglog.sim.stimulus import sentences
 from maglog.sim.backends.cocotb import COCOTB_SIMULATORS
-from maglog.sim.runners.frontend import ChannelStimulus, FrontEndBench, Segments
+from maglog.sim.runners.frontend import FrontEndBench
+from maglog.sim.stimulus.uart_line import ChannelStimulus, Segments, encode
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.stimulus.streams import demo_streams
-from maglog.sim.stimulus.uart_line import encode
 
 SIMULATORS = tuple(COCOTB_SIMULATORS)
 NAMES = ("mag", "gps", "cesium")
