@@ -285,6 +285,69 @@ def write_amplification(report):
     return lines
 
 
+# --- system_speed.json / main_command.json ------------------------------------------------
+
+SYSTEM_BACKENDS = {"verilator": "verilator (the C++ harness, Python per command)",
+                   "model": "model (transaction level, no RTL)",
+                   "verilator-cocotb": "verilator-cocotb (models on the pins)",
+                   "icarus": "icarus (cocotb, models on the pins)",
+                   "amaranth": "amaranth (models on the pins)"}
+
+
+def system_speed(report):
+    rows = []
+    for r in report["runs"]:
+        rows.append([SYSTEM_BACKENDS.get(r["backend"], r["backend"]),
+                     f"{r['clk_freq_hz'] / 1e6:g}",
+                     f"{r['simulated_s']:g}" + ("" if r["whole_flight"] else " (first)"),
+                     f"{r['run_wall_s']:.1f}", f"**{r['real_time_factor']:.3g}**",
+                     thousands(round(r["cycles_per_s"])) if r["backend"] != "model" else "–"])
+    limit, fast50 = report["harness_alone"], report["verilator_50mhz"]
+    rows.append(["the harness alone (Verilator, no Python): the limit",
+                 f"{limit['clk_freq_hz'] / 1e6:g}", f"{limit['simulated_s']:g} (first)",
+                 f"{limit['wall_s']:.1f}", f"**{limit['real_time_factor']:.3g}**",
+                 thousands(round(limit["cycles_per_s"]))])
+    rows.append([SYSTEM_BACKENDS["verilator"] + " at 50 MHz", f"{fast50['clk_freq_hz'] / 1e6:g}",
+                 f"{fast50['simulated_s']:g} (first)", f"{fast50['run_wall_s']:.1f}",
+                 f"**{fast50['real_time_factor']:.3g}**",
+                 thousands(round(fast50["cycles_per_s"]))])
+    lines = table(["backend", "clock MHz", "flight s", "wall s", "real-time factor",
+                   "clocks/s"], rows, "lrrrrr")
+    v = report["verdict"]
+    lines.append("")
+    if "rtf_met" in v:
+        fast = next(r for r in report["runs"] if r["backend"] == "verilator")
+        lines.append(f"- Goal: a real-time factor of at least {v['rtf_goal']:g} on Verilator "
+                     f"at {fast['clk_freq_hz'] / 1e6:g} MHz: "
+                     + ("met." if v["rtf_met"] else
+                        f"**missed** ({fast['real_time_factor']:.2f}); the harness alone "
+                        f"reaches {limit['real_time_factor']:.2f}: the design's own "
+                        f"evaluation sets the pace."))
+        lines.append(f"- The runner against the limit: {v['limit_ratio']:.2f}x slower (goal "
+                     f"within {v['limit_ratio_goal']:g}x: "
+                     + ("met)." if v["limit_ratio_met"] else "**missed**)."))
+    hour = report.get("hour_on_model")
+    if hour is not None:
+        lines.append(f"- A one-hour flight ({hour['simulated_s']:.0f} s) on the model: peak "
+                     f"memory {hour['peak_rss_bytes'] / 2**20:.0f} MiB (goal ≤ "
+                     f"{v['memory_goal_bytes'] / 2**30:g} GiB: "
+                     + ("met" if v["memory_met"] else "**missed**")
+                     + f"), {hour['build_s']:.0f} s to build its streams and "
+                     f"{hour['run_wall_s']:.0f} s to run.")
+    return lines
+
+
+def main_command(report):
+    r = report["result"]
+    lines = table(["step", "command", "wall s", "exit"],
+                  [["set-up", "`make setup`", f"{r['setup_s']:.0f}", r["setup_exit"]],
+                   ["the main job", "`make run`", f"{r['run_s']:.0f}", r["run_exit"]]],
+                  "llrr")
+    lines += ["", f"On a fresh clone of commit `{r['commit'][:7]}` ({r['clone']}); the "
+                  f"summary's verdict: {r['verdict']}."]
+    return lines
+
+
 # --- calib.json -------------------------------------------------------------------------
 
 COVERAGE_NAMES = {"full": "full sphere", "uav": "UAV ±30°", "planar": "near-planar ±5°"}
