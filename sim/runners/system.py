@@ -54,7 +54,7 @@ def _missing(backend):
         verilator_bin_dir()
     except RuntimeError as error:
         return str(error)
-    if backend == "verilator" and not (shutil.which("c++") or shutil.which("g++")):
+    if not (shutil.which("c++") or shutil.which("g++")):
         return "no C++ compiler on PATH (install build-essential)"
     return None
 
