@@ -190,7 +190,7 @@ class CalibrationRun:
                "method": self.method,
                "rms_before_nT": float(np.sqrt(np.mean(raw ** 2))),
                "rms_after_nT": float(np.sqrt(np.mean(self.residual ** 2))),
-               "log_report": _jsonable(vars(self.parsed.report))}
+               "log_report": jsonable(vars(self.parsed.report))}
         if self.method == "ellipsoid":
             res = self.result
             out.update(fit=res.method, center_nT=res.center.tolist(), W=res.W.tolist(),
@@ -257,13 +257,13 @@ class HeadingAnalysis:
         return out
 
 
-def _jsonable(value):
+def jsonable(value):
     """Plain JSON values: NaN and infinities become null (JSON has neither; a bare NaN
     made parameters.json unreadable to strict parsers)."""
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple, np.ndarray)):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
     if isinstance(value, (np.integer,)):
@@ -846,7 +846,7 @@ def write_report(run, out_dir):
                 summary["allan"] = _allan_dict(allan)
             files = _plots(run, out, staged, allan)
             _stage(staged, out / "parameters.json").write_text(
-                json.dumps(_jsonable(summary), indent=2, allow_nan=False) + "\n")
+                json.dumps(jsonable(summary), indent=2, allow_nan=False) + "\n")
             markdown_text = "\n".join(_report_lines(run, summary, files, allan)) + "\n"
             _stage(staged, out / "report.md").write_text(markdown_text, encoding="utf-8")
             _stage(staged, out / "report.html").write_text(

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calib.ellipsoid import fit_ellipsoid
+from ..calib.pipeline import jsonable as _jsonable
 from ..calib.heading import declination, tilt_compensated_heading, wrap_degrees
 from ..calib.noise import BIAS_INSTABILITY_FACTOR, allan_deviation, kalman_filter, \
     simulate_noise
@@ -81,20 +82,6 @@ class PapersResult:
     def as_dict(self):
         return _jsonable({"markdown": str(self.markdown), "json": str(self.json),
                           "plots": {k: str(v) for k, v in self.plots.items()}, **self.data})
-
-
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    return value
 
 
 def _pyplot():

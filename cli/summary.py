@@ -16,12 +16,12 @@ Four scores, each with a one-line verdict:
 """
 
 import hashlib
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..calib.pipeline import CalibrationRun
+from ..calib.pipeline import jsonable as _jsonable
 from ..calib.scalar import PARAMETERS
 
 
@@ -94,20 +94,6 @@ class Summary:
                           "checks": [{"name": c.name, "status": c.status, "detail": c.detail,
                                       "tolerance": c.tolerance} for c in self.checks],
                           **self.data})
-
-
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    return value
 
 
 # -- Frames ---------------------------------------------------------------------------------
