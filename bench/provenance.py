@@ -662,6 +662,7 @@ BLOCKS = {
     "sdram-bandwidth": ("bench/results/sdram_bandwidth.json", sdram_bandwidth),
     "write-amplification": ("bench/results/write_amplification.json", write_amplification),
     "system-speed": ("bench/results/system_speed.json", system_speed),
+    "main-command": ("bench/results/main_command.json", main_command),
     "calib-accuracy": ("bench/results/calib.json", calib_accuracy),
     "calib-timing": ("bench/results/calib.json", calib_timing),
     "calib-pso": ("bench/results/calib.json", calib_pso),
