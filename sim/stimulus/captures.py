@@ -20,8 +20,8 @@ _CAPTURE_SUBDIR = "nmea"
 _CAPTURE_GLOB = "*.log"
 _HEADER_MARK = b"#"
 _LINE_END = b"\n"
-#: ``sim/`` is one level below the repository root.
-_REPO_ROOT = Path(__file__).resolve().parent.parent
+#: This module is sim/stimulus/captures.py: the repository root is two levels up.
+_REPO_ROOT = Path(__file__).resolve().parents[2]          # sim/stimulus/captures.py
 
 
 def shared_data_dir() -> Path | None:

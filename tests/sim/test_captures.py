@@ -79,7 +79,7 @@ def test_shared_data_dir_env_override(tmp_path: Path, monkeypatch: pytest.Monkey
 
 def test_default_location_is_beside_the_repository(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(DATA_ENV_VAR, raising=False)
-    repo = Path(captures.__file__).resolve().parent.parent
+    repo = Path(__file__).resolve().parents[2]          # tests/sim/ is two levels down
     expected = repo.parent / "shared" / "data"
     assert shared_data_dir() == (expected if expected.is_dir() else None)
 
