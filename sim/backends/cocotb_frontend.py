@@ -1,6 +1,6 @@
 """cocotb bench for the serial front end's generated Verilog.
 
-Run by :func:`maglog.sim.runners.frontend.run_frontend` through ``cocotb_tools.runner``; the
+Run by :class:`maglog.sim.runners.frontend.FrontEndBench` through ``cocotb_tools.runner``; the
 stimulus comes in as a JSON file named by ``$MAGLOG_STIMULUS`` and the result goes out to
 ``$MAGLOG_RESULT``. Serial lines are driven by cocotbext-uart's ``UartSource`` (a bus
 functional model written by someone else) for plain byte streams, or segment by segment

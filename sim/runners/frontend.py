@@ -19,7 +19,7 @@ from ..backends.cocotb import CocotbBuild
 from ..stimulus.uart_line import ChannelStimulus, Segments
 
 
-__all__ = ["BACKENDS", "FrontEndResult", "FrontEndBench", "run_frontend", "run_frame_filter"]
+__all__ = ["BACKENDS", "FrontEndResult", "FrontEndBench", "run_frame_filter"]
 
 BACKENDS = ("amaranth", "icarus", "verilator")
 #: cocotb's clock period, the Amaranth simulator's (one constant for both).
@@ -168,13 +168,6 @@ class FrontEndBench:
             result = self._run_cocotb(stimuli, waves)
         result.seconds = time.perf_counter() - start
         return result
-
-
-def run_frontend(stimuli, *, channels=DEFAULT_CHANNELS, backend="amaranth", build_dir=None,
-                 **params):
-    """Build the front end for ``backend`` and run ``stimuli`` (one per channel) once."""
-    bench = FrontEndBench(channels, backend=backend, build_dir=build_dir, **params)
-    return bench.run(stimuli)
 
 
 def run_frame_filter(kind, events, *, max_frame=arch_frames.DEFAULT_MAX_FRAME, fifo_depth=1024,
