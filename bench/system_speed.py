@@ -89,7 +89,7 @@ def harness_alone(stimulus, seconds, build_dir, folder):
     """The Verilog and the C++ harness with no Python in the loop: Verilator's own speed."""
     from maglog.hw.arch.sdram import MT48LC4M32B2
     from maglog.hw.top import Logger
-    from maglog.sim.backends.fast import FastHarness, build_harness
+    from maglog.sim.backends.fast import FastHarness, build_harness, burst_bytes
     from maglog.sim.models.logger_sd import ModelCard
     system = stimulus.system
     logger = Logger(channels=system.channels, clk_freq=system.clk_freq,
@@ -106,11 +106,10 @@ def harness_alone(stimulus, seconds, build_dir, folder):
             for burst in system.channel_bursts(k):
                 if burst.start >= seconds:
                     break
-                bit = clk / (burst.baud or channel.baud)
-                first = round(burst.start * clk)
-                starts += [first + round(i * 10 * bit) for i in range(len(burst.data))]
-                values += list(burst.data)
-                bits += [bit] * len(burst.data)
+                more = burst_bytes(burst, channel.baud, clk)
+                starts += more[0]
+                values += more[1]
+                bits += more[2]
             harness.push_bytes(k, starts, values, bits)
             queued += len(values)
         cycles = round(seconds * clk)

@@ -46,7 +46,7 @@ from ..stimulus.system import UART_FRAME_BITS, SystemScenario
 
 
 __all__ = ["FastBuildError", "FastSimulationError", "fast_wrapper", "build_harness",
-           "FastHarness", "FastBus", "run_system_fast", "CHANNEL_NAMES"]
+           "FastHarness", "FastBus", "burst_bytes", "run_system_fast", "CHANNEL_NAMES"]
 
 #: Reset clocks after power-up (the wrapper's power-on reset).
 POR_CYCLES = 15
@@ -460,6 +460,16 @@ class FastBus(RegisterBus):
 
 # -- a run ----------------------------------------------------------------------------------
 
+def burst_bytes(burst, nominal_baud, clk_freq):
+    """What the harness's transmitter takes for one burst: ``(starts, values, bit_cycles)``,
+    each byte's start cycle, its value and its line's clocks a bit (a burst off the nominal
+    rate, a baud-error fault, keeps its own bit time)."""
+    bit = clk_freq / (burst.baud or nominal_baud)
+    first = round(burst.start * clk_freq)
+    starts = [first + round(i * UART_FRAME_BITS * bit) for i in range(len(burst.data))]
+    return starts, list(burst.data), [bit] * len(burst.data)
+
+
 @dataclass
 class _Feeder:
     """Tops up the harness's serial lines from the scenario's bursts, a stretch ahead of
@@ -487,15 +497,12 @@ class _Feeder:
             nominal = self.scenario.channels[k].baud
             while self._next[k] < len(bursts):
                 burst = bursts[self._next[k]]
-                # A burst off the nominal rate (a baud-error fault) keeps its own bit time.
-                bit = clk / (burst.baud or nominal)
-                first = round(burst.start * clk)
-                if first > horizon:
+                if round(burst.start * clk) > horizon:
                     break
-                for i, value in enumerate(burst.data):
-                    starts.append(first + round(i * UART_FRAME_BITS * bit))
-                    values.append(value)
-                bits += [bit] * len(burst.data)
+                more = burst_bytes(burst, nominal, clk)
+                starts += more[0]
+                values += more[1]
+                bits += more[2]
                 self._next[k] += 1
                 self.sent_frames += 1
             self.harness.push_bytes(k, starts, values, bits)
