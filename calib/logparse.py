@@ -499,6 +499,97 @@ def _parse_vtg(fields: list[str]) -> tuple[float, float]:
     return course, speed
 
 
+# --- the bulk readers ---------------------------------------------------------------------
+# The logger writes $PMAG1 and cesium frames in fixed forms. Lines in exactly those forms
+# (and, for $PMAG1, with a matching checksum) are read with array operations; every other
+# line, good or bad, goes to _Reader.read_line. The forms accept no line that read_line would
+# refuse or read differently: each field is one read_line accepts, and a value of n decimals
+# is its digits as an integer divided by 10**n, the correctly rounded double that float()
+# gives for its text too.
+
+#: The forms, one byte class per column: "d" a digit, "s" a sign, "c" the cesium range (" "
+#: or "1"), "h" a hex digit; any other byte stands for itself.
+_PMAG_FORM = b"$PMAG1,ddddd,sddddd.d,sddddd.d,sddddd.d*hh"
+_CESIUM_FORM = b"$cddddd.ddd,dddd"
+_LF = ord("\n")
+_CR = ord("\r")
+
+
+def _byte_set(members: bytes) -> np.ndarray:
+    table = np.zeros(256, dtype=bool)
+    table[list(members)] = True
+    return table
+
+
+_BYTE_CLASSES = {
+    ord("d"): _byte_set(b"0123456789"),
+    ord("s"): _byte_set(b"+-"),
+    ord("c"): _byte_set(b" 1"),
+    ord("h"): _byte_set(b"0123456789ABCDEFabcdef"),
+}
+_HEX_VALUE = np.zeros(256, dtype=np.int64)
+_HEX_VALUE[list(b"0123456789")] = range(10)
+_HEX_VALUE[list(b"ABCDEF")] = range(10, 16)
+_HEX_VALUE[list(b"abcdef")] = range(10, 16)
+
+
+def _rows_in_form(
+    data: np.ndarray, starts: np.ndarray, length: np.ndarray, form: bytes
+) -> tuple[np.ndarray, np.ndarray]:
+    """The indices of the lines (``length`` bytes from ``starts``, line end excluded) that are
+    exactly in ``form``, and their bytes, one row per line."""
+    template = np.frombuffer(form, dtype=np.uint8)
+    lines = np.flatnonzero(length == len(form))
+    if not len(lines):
+        return lines, np.empty((0, len(form)), dtype=np.uint8)
+    rows = np.lib.stride_tricks.sliding_window_view(data, len(form))[starts[lines]]
+    ok = np.ones(len(lines), dtype=bool)
+    literal = np.ones(len(form), dtype=bool)
+    for byte_class, members in _BYTE_CLASSES.items():
+        columns = np.flatnonzero(template == byte_class)
+        literal[columns] = False
+        if len(columns):
+            ok &= members[rows[:, columns]].all(axis=1)
+    ok &= (rows[:, literal] == template[literal]).all(axis=1)
+    return lines[ok], rows[ok]
+
+
+def _digits(rows: np.ndarray, first: int, count: int) -> np.ndarray:
+    """The unsigned integers written in columns ``first`` to ``first + count - 1``."""
+    value = np.zeros(len(rows), dtype=np.int64)
+    for column in range(first, first + count):
+        value = value * 10 + (rows[:, column] - ord("0"))
+    return value
+
+
+def _bulk_pmag(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """``$PMAG1`` lines in :data:`_PMAG_FORM` with a good checksum: their indices, and
+    sequence number and x, y, z as :func:`_parse_pmag` reads them."""
+    lines, rows = _rows_in_form(data, starts, length, _PMAG_FORM)
+    star = _PMAG_FORM.index(b"*")
+    sent = _HEX_VALUE[rows[:, star + 1]] * 16 + _HEX_VALUE[rows[:, star + 2]]
+    good = np.bitwise_xor.reduce(rows[:, 1:star], axis=1) == sent
+    lines, rows = lines[good], rows[good]
+    seq = _digits(rows, _PMAG_FORM.index(b"d"), len(str(SEQ_MODULUS - 1)))
+    axes = []
+    for sign in (index for index, byte in enumerate(_PMAG_FORM) if byte == ord("s")):
+        # ±XXXXX.X: five digits, the point, one digit.
+        tenths = _digits(rows, sign + 1, 5) * 10 + _digits(rows, sign + 7, 1)
+        value = tenths / 10.0
+        axes.append(np.where(rows[:, sign] == ord("-"), -value, value))
+    return lines, (seq, *axes)
+
+
+def _bulk_cesium(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """Cesium lines in :data:`_CESIUM_FORM`: their indices, and field and signal as
+    :func:`_parse_cesium` reads them."""
+    lines, rows = _rows_in_form(data, starts, length, _CESIUM_FORM)
+    # [ 1]ddddd.ddd,dddd from column 1.
+    value = (_digits(rows, 2, 5) * 1000 + _digits(rows, 8, 3)) / 1000.0
+    field = value + np.where(rows[:, 1] == ord("1"), _CESIUM_HIGH_RANGE_NT, 0.0)
+    return lines, (field, _digits(rows, 12, 4))
+
+
 # --- the line reader ----------------------------------------------------------------------
 
 
@@ -516,17 +607,68 @@ class _Reader:
         self.gga: list[tuple] = []
         self.zda: list[tuple] = []
         self.vtg: list[tuple] = []
-        # prefix[i] is the XOR of data[:i]: the XOR of data[a:b] is prefix[a] ^ prefix[b].
-        prefix = np.zeros(len(data) + 1, dtype=np.uint8)
-        if data:
-            np.bitwise_xor.accumulate(np.frombuffer(data, dtype=np.uint8), out=prefix[1:])
-        self.prefix = prefix.tobytes()
+        #: Records read in bulk (:meth:`read`), per channel: one array per column.
+        self.bulk: dict[str, tuple[np.ndarray, ...]] = {}
+        self._prefix: bytes | None = None
+
+    @property
+    def prefix(self) -> bytes:
+        """``prefix[i]`` is the XOR of ``data[:i]``: the XOR of ``data[a:b]`` is
+        ``prefix[a] ^ prefix[b]`` (computed when a line first needs it)."""
+        if self._prefix is None:
+            prefix = np.zeros(len(self.data) + 1, dtype=np.uint8)
+            if self.data:
+                np.bitwise_xor.accumulate(np.frombuffer(self.data, np.uint8), out=prefix[1:])
+            self._prefix = prefix.tobytes()
+        return self._prefix
 
     def fail(self, line: int, reason: str, detail: str) -> None:
         self.bad.append((line, reason))
         self.report.messages.append(f"{self.name}:{line}: {reason}: {detail}")
 
     def read(self) -> None:
+        """Read every line: the frames in the logger's own fixed forms in bulk
+        (:func:`_bulk_pmag`, :func:`_bulk_cesium`), every other line with :meth:`read_line`,
+        with the same results as :meth:`read_per_line`."""
+        data = np.frombuffer(self.data, dtype=np.uint8)
+        ends = np.flatnonzero(data == _LF)
+        starts = np.zeros(len(ends), dtype=np.int64)
+        starts[1:] = ends[:-1] + 1
+        tail = self.data[int(ends[-1]) + 1 if len(ends) else 0 :]
+        self.report.lines = len(ends) + (1 if tail else 0)
+        crlf = (ends > starts) & (data[ends - 1] == _CR)
+        stops = ends - crlf
+        self.report.line_endings["CRLF"] = int(np.count_nonzero(crlf))
+        self.report.line_endings["LF"] = len(ends) - self.report.line_endings["CRLF"]
+        done = np.zeros(len(ends), dtype=bool)
+        for kind, bulk_reader in (("mag", _bulk_pmag), ("cesium", _bulk_cesium)):
+            taken, columns = bulk_reader(data, starts, stops - starts)
+            self.bulk[kind] = (taken + 1, *columns)  # line numbers count from 1
+            done[taken] = True
+        rest = np.flatnonzero(~done)
+        for index, start, stop in zip(rest.tolist(), starts[rest].tolist(), stops[rest].tolist()):
+            self.read_line(index + 1, start, self.data[start:stop])
+        if tail:
+            self.fail(
+                len(ends) + 1, TRUNCATED, f"the last line has no line end ({len(tail)} bytes)"
+            )
+
+    def columns(self, kind: str, dtypes: tuple) -> list[np.ndarray]:
+        """The records of one channel, line by line and in bulk, merged in line order:
+        one array per column (the first is the line number)."""
+        rows = getattr(self, kind)
+        columns = [_column(rows, index, dtype) for index, dtype in enumerate(dtypes)]
+        bulk = self.bulk.get(kind)
+        if bulk is None or not len(bulk[0]):
+            return columns
+        if not rows:
+            return [np.asarray(column, dtype) for column, dtype in zip(bulk, dtypes)]
+        columns = [np.concatenate([one, other]) for one, other in zip(columns, bulk)]
+        order = np.argsort(columns[0], kind="stable")
+        return [column[order] for column in columns]
+
+    def read_per_line(self) -> None:
+        """Read every line with :meth:`read_line` (the reference :meth:`read` agrees with)."""
         pieces = self.data.split(b"\n")
         self.report.lines = len(pieces) - (1 if pieces[-1] == b"" else 0)
         offset = 0
@@ -798,26 +940,60 @@ def parse_log(data: bytes, *, name: str = "log", gps_latency: float = 0.0) -> Pa
         raise ValueError(
             f"GPS latency must be a finite number of seconds >= 0, not {gps_latency!r}"
         )
-    reader = _Reader(bytes(data), name)
-    reader.read()
-    report = reader.report
+    return _parse(bytes(data), name, float(gps_latency))
 
-    mag_line = _column(reader.mag, 0, np.int64)
-    seq, report.seq_gaps, report.seq_missing, report.seq_repeats = _unwrap_seq(
-        _column(reader.mag, 1, np.int64)
-    )
-    b = np.array([row[2:] for row in reader.mag], dtype=np.float64).reshape(-1, 3)
-    cs_line = _column(reader.cesium, 0, np.int64)
-    gga_line = _column(reader.gga, 0, np.int64)
-    tod = _column(reader.gga, 1, np.float64)
-    quality = _column(reader.gga, 4, np.int64)
+
+def _parse(data: bytes, name: str, gps_latency: float, *, per_line: bool = False) -> ParsedLog:
+    """:func:`parse_log` after its checks. ``per_line`` reads every line on its own
+    (:meth:`_Reader.read_per_line`), the reference the bulk reading must agree with."""
+    reader = _Reader(data, name)
+    if per_line:
+        reader.read_per_line()
+    else:
+        reader.read()
+    report = reader.report
+    mag_line, raw_seq, *axes = reader.columns("mag", (np.int64, np.int64) + (np.float64,) * 3)
+    seq, report.seq_gaps, report.seq_missing, report.seq_repeats = _unwrap_seq(raw_seq)
+    gga_columns = reader.columns("gga", (np.int64,) + (np.float64,) * 3 + (np.int64,) * 2
+                                 + (np.float64,) * 2)
+    gga_line, tod, quality = gga_columns[0], gga_columns[1], gga_columns[4]
     zda_line = _column(reader.zda, 0, np.int64)
     zda_datetimes = [row[1] for row in reader.zda]
-    vtg_line = _column(reader.vtg, 0, np.int64)
 
     anchors = _find_anchors(gga_line, tod, quality, zda_line, zda_datetimes)
-    anchor_t = anchors.epoch + float(gps_latency)
+    anchor_t = anchors.epoch + gps_latency
     anchor_pos = anchors.line.astype(np.float64)
+    _report_anchors(report, anchors, anchor_pos, anchor_t)
+    mag_t = _line_times(mag_line, anchor_pos, anchor_t)
+    if report.time_aligned and len(mag_line):
+        mag_t = _time_mag(report, mag_line, seq, mag_t, anchors, anchor_t)
+    gga_t = _line_times(gga_line, anchor_pos, anchor_t) - gps_latency
+    gga_t[anchors.gga_index] = anchors.epoch
+    if not report.time_aligned:
+        gga_t[:] = math.nan
+
+    mag = MagData(mag_line, seq, np.column_stack(axes), mag_t, report.seq_gaps,
+                  report.seq_missing, report.seq_repeats)
+    cs_line, cs_field, cs_signal = reader.columns("cesium", (np.int64, np.float64, np.int64))
+    cesium = CesiumData(cs_line, cs_field, cs_signal, _line_times(cs_line, anchor_pos, anchor_t))
+    gga = GgaData(*gga_columns, gga_t)
+    zda = ZdaData(zda_line, zda_datetimes, _line_times(zda_line, anchor_pos, anchor_t))
+    vtg_line, course, speed = reader.columns("vtg", (np.int64, np.float64, np.float64))
+    vtg = VtgData(vtg_line, course, speed, _line_times(vtg_line, anchor_pos, anchor_t))
+    report.counts = {"mag": len(mag), "cesium": len(cesium), "gga": len(gga), "zda": len(zda),
+                     "vtg": len(vtg)}
+    found = Counter(reason for _, reason in reader.bad)
+    report.bad = {reason: found.get(reason, 0) for reason in BAD_REASONS}
+    report.ignored = dict(Counter(address for _, address in reader.ignored))
+    if not data:
+        report.messages.insert(0, f"{name}: the log is empty")
+    return ParsedLog(name=name, mag=mag, cesium=cesium, gga=gga, zda=zda, vtg=vtg,
+                     bad=reader.bad, ignored=reader.ignored, date=anchors.date, report=report)
+
+
+def _report_anchors(report: LogReport, anchors: _Anchors, anchor_pos, anchor_t) -> None:
+    """The report's anchor figures and notes."""
+    name = report.name
     report.anchors = len(anchors.line)
     report.anchors_not_increasing = anchors.not_increasing
     report.midnight_rollovers = anchors.rollovers
@@ -847,98 +1023,46 @@ def parse_log(data: bytes, *, name: str = "log", gps_latency: float = 0.0) -> Pa
             f"{name}: {anchors.not_increasing} GGA times did not increase and were left out"
         )
 
-    mag_t = _line_times(mag_line, anchor_pos, anchor_t)
-    if report.time_aligned and len(mag_line):
-        fit = _fit_mag(mag_line, seq, anchors.line, anchor_t)
-        if fit is None:
-            report.mag_timing = "line"
-            report.messages.append(
-                f"{name}: GGA anchors and magnetometer sequence numbers do not agree on a "
-                "sample rate (too few anchors between magnetometer lines, or most disagree): "
-                "magnetometer timed by line position"
-            )
-        else:
-            line_t = mag_t
-            mag_t = fit.times(seq)
-            # A sample whose sequence time is far from its line time is not on the fitted line
-            # (a sensor restart): it keeps its line time. Line times extrapolated beyond the
-            # anchors get less certain with distance, so the limit grows there.
-            beyond = np.maximum(0.0, np.maximum(anchor_t[0] - line_t, line_t - anchor_t[-1]))
-            limit = _MAX_SEQUENCE_LINE_DISAGREEMENT + _DISAGREEMENT_GROWTH * beyond
-            astray = np.abs(mag_t - line_t) > limit
-            mag_t[astray] = line_t[astray]
-            report.mag_line_timed = int(np.count_nonzero(astray))
-            if report.mag_line_timed:
-                report.messages.append(
-                    f"{name}: {report.mag_line_timed} magnetometer samples are more than "
-                    f"{_MAX_SEQUENCE_LINE_DISAGREEMENT:g} s from where their lines arrived "
-                    "(sensor restart?): timed by line position instead"
-                )
-            report.mag_timing = "sequence"
-            report.mag_rate_hz = 1.0 / fit.period
-            report.mag_brackets = fit.used
-            report.mag_outliers = fit.outliers
-            report.mag_fit_rms_s = fit.rms
-            if fit.outliers > _OUTLIER_WARNING_SHARE * (fit.used + fit.outliers):
-                report.messages.append(
-                    f"{name}: {fit.outliers} of {fit.used + fit.outliers} GGA anchors "
-                    "disagree with the magnetometer sequence (sensor restart or clock change?)"
-                )
 
-    gga_t = _line_times(gga_line, anchor_pos, anchor_t) - float(gps_latency)
-    gga_t[anchors.gga_index] = anchors.epoch
-    if not report.time_aligned:
-        gga_t[:] = math.nan
-
-    mag = MagData(mag_line, seq, b, mag_t, report.seq_gaps, report.seq_missing, report.seq_repeats)
-    cesium = CesiumData(
-        cs_line,
-        _column(reader.cesium, 1, np.float64),
-        _column(reader.cesium, 2, np.int64),
-        _line_times(cs_line, anchor_pos, anchor_t),
-    )
-    gga = GgaData(
-        gga_line,
-        tod,
-        _column(reader.gga, 2, np.float64),
-        _column(reader.gga, 3, np.float64),
-        quality,
-        _column(reader.gga, 5, np.int64),
-        _column(reader.gga, 6, np.float64),
-        _column(reader.gga, 7, np.float64),
-        gga_t,
-    )
-    zda = ZdaData(zda_line, zda_datetimes, _line_times(zda_line, anchor_pos, anchor_t))
-    vtg = VtgData(
-        vtg_line,
-        _column(reader.vtg, 1, np.float64),
-        _column(reader.vtg, 2, np.float64),
-        _line_times(vtg_line, anchor_pos, anchor_t),
-    )
-    report.counts = {
-        "mag": len(mag),
-        "cesium": len(cesium),
-        "gga": len(gga),
-        "zda": len(zda),
-        "vtg": len(vtg),
-    }
-    found = Counter(reason for _, reason in reader.bad)
-    report.bad = {reason: found.get(reason, 0) for reason in BAD_REASONS}
-    report.ignored = dict(Counter(address for _, address in reader.ignored))
-    if not data:
-        report.messages.insert(0, f"{name}: the log is empty")
-    return ParsedLog(
-        name=name,
-        mag=mag,
-        cesium=cesium,
-        gga=gga,
-        zda=zda,
-        vtg=vtg,
-        bad=reader.bad,
-        ignored=reader.ignored,
-        date=anchors.date,
-        report=report,
-    )
+def _time_mag(report: LogReport, mag_line, seq, line_t, anchors: _Anchors, anchor_t):
+    """Magnetometer times by sequence number (step 3 of the module doc), or ``line_t``, the
+    times by line position, where the fit fails; the report says which."""
+    name = report.name
+    fit = _fit_mag(mag_line, seq, anchors.line, anchor_t)
+    if fit is None:
+        report.mag_timing = "line"
+        report.messages.append(
+            f"{name}: GGA anchors and magnetometer sequence numbers do not agree on a "
+            "sample rate (too few anchors between magnetometer lines, or most disagree): "
+            "magnetometer timed by line position"
+        )
+        return line_t
+    mag_t = fit.times(seq)
+    # A sample whose sequence time is far from its line time is not on the fitted line
+    # (a sensor restart): it keeps its line time. Line times extrapolated beyond the
+    # anchors get less certain with distance, so the limit grows there.
+    beyond = np.maximum(0.0, np.maximum(anchor_t[0] - line_t, line_t - anchor_t[-1]))
+    limit = _MAX_SEQUENCE_LINE_DISAGREEMENT + _DISAGREEMENT_GROWTH * beyond
+    astray = np.abs(mag_t - line_t) > limit
+    mag_t[astray] = line_t[astray]
+    report.mag_line_timed = int(np.count_nonzero(astray))
+    if report.mag_line_timed:
+        report.messages.append(
+            f"{name}: {report.mag_line_timed} magnetometer samples are more than "
+            f"{_MAX_SEQUENCE_LINE_DISAGREEMENT:g} s from where their lines arrived "
+            "(sensor restart?): timed by line position instead"
+        )
+    report.mag_timing = "sequence"
+    report.mag_rate_hz = 1.0 / fit.period
+    report.mag_brackets = fit.used
+    report.mag_outliers = fit.outliers
+    report.mag_fit_rms_s = fit.rms
+    if fit.outliers > _OUTLIER_WARNING_SHARE * (fit.used + fit.outliers):
+        report.messages.append(
+            f"{name}: {fit.outliers} of {fit.used + fit.outliers} GGA anchors "
+            "disagree with the magnetometer sequence (sensor restart or clock change?)"
+        )
+    return mag_t
 
 
 def _interpolate(

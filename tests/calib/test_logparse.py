@@ -3,6 +3,7 @@ known arrival times, and one test per kind of bad line and per error path."""
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import math
 import re
@@ -954,3 +955,111 @@ def test_to_arrays_checks_its_arguments(argument, error, message):
     arguments = {"parsed": parse_log(b"")} | argument
     with pytest.raises(error, match=f"^{re.escape(message)}$"):
         to_arrays(arguments.pop("parsed"), **arguments)
+
+
+# --- bulk reading ---------------------------------------------------------------------------
+# parse_log reads the lines in the logger's own forms with array operations and every other
+# line on its own; logparse._parse(..., per_line=True) reads every line on its own. Both must
+# give the same ParsedLog, bit for bit.
+
+
+def assert_identical(fast, slow, where: str = "parsed") -> None:
+    """Equal values of equal types, arrays equal in dtype, shape and bytes (-0.0, NaN)."""
+    if dataclasses.is_dataclass(fast):
+        assert type(fast) is type(slow), where
+        for member in dataclasses.fields(fast):
+            assert_identical(
+                getattr(fast, member.name), getattr(slow, member.name), f"{where}.{member.name}"
+            )
+    elif isinstance(fast, np.ndarray):
+        assert isinstance(slow, np.ndarray), where
+        assert (fast.dtype, fast.shape) == (slow.dtype, slow.shape), where
+        assert fast.tobytes() == slow.tobytes(), where
+    elif isinstance(fast, (list, tuple)):
+        assert type(fast) is type(slow) and len(fast) == len(slow), where
+        for index, (one, other) in enumerate(zip(fast, slow)):
+            assert_identical(one, other, f"{where}[{index}]")
+    elif isinstance(fast, dict):
+        assert type(slow) is dict and list(fast) == list(slow), where
+        for key in fast:
+            assert_identical(fast[key], slow[key], f"{where}[{key!r}]")
+    elif isinstance(fast, float) and math.isnan(fast):
+        assert type(slow) is float and math.isnan(slow), where
+    else:
+        assert type(fast) is type(slow) and fast == slow, (where, fast, slow)
+
+
+def _lower_hex(body: str) -> bytes:
+    """A sentence whose checksum is written in lower case (a letter in it)."""
+    assert re.search("[a-f]", f"{nmea_checksum(body):02x}")
+    return f"${body}*{nmea_checksum(body):02x}\r\n".encode()
+
+
+#: Good lines in or near the logger's forms and in other forms, lines one byte away from the
+#: forms, and every bad line of BAD_CASES: mixed into a survey by test_bulk_and_per_line_agree.
+EDGE_LINES = [
+    _lower_hex("PMAG1,00001,+00001.0,+00002.0,+00001.0"),
+    nmea_sentence("PMAG1,00002,-00000.0,+99999.9,-99999.9"),  # -0.0 and the form's limits
+    nmea_sentence("PMAG1,99999,-12345.6,+00000.0,-00000.1"),
+    nmea_sentence("PMAG1,7,1.5,-2,+3.25"),  # good, not the logger's form
+    nmea_sentence("PMAG1,00003,+000001.0,+0002.0,+00003.0"),  # good, fields of other widths
+    nmea_sentence("PMAG1,00001, 00001.0,+00002.0,+00003.0"),  # space for the sign: number
+    nmea_sentence("PMAG1,0000:,+00001.0,+00002.0,+00003.0"),  # ':' follows '9': number
+    nmea_sentence("PMAG1,0000/,+00001.0,+00002.0,+00003.0"),  # '/' precedes '0': number
+    nmea_sentence("PMAG1;00001,+00001.0,+00002.0,+00003.0"),  # no address comma
+    nmea_sentence("PMAG1,00001,+00001.0,+00002.0,+00003.0").replace(b"*", b"#"),
+    nmea_sentence("PMAG1,00001,+00001.0,+00002.0,+00003.0").replace(b"$", b"!"),
+    b"$PMAG1,00001,+00001.0,+00002.0,+00003.0*g0\r\n",
+    b"xx" + pmag1(5, 1.0, 2.0, 3.0),  # a cut frame before a good one
+    b"$PMAG1,00001,+0$" + pmag1(6, -1.0, -2.0, -3.0),
+    b"xx" + cesium(49_895.2, 1249),
+    b"$149895.131,0001\r\n",  # cesium, high range
+    b"$100000.000,9999\r\n",
+    b"$ 00000.000,0000\r\n",
+    b"$ 49895.131,1249\n",  # bare LF in a CR LF log
+    b"$ 49895.1311249\r\n",
+    b"$ 49895.131;1249\r\n",
+    b"$ 49895.131,124\r\n",
+    b"$ 49895.131,12490\r\n",
+    b"$049895.131,1249\r\n",  # a digit, not the range: number
+    b"$ 4989\x005.131,1249\r\n",
+    b"$ 49895,131,1249\r\n",
+    b"$ 49895.131,1249 \r\n",
+    b"\r\n",
+    b"\n",
+    rmc(DAY, 47.0, 8.0),
+    gsa([1, 2, 3]),
+    nmea_sentence("GPGGA,,,,,,0,00,,,M,,M,,"),  # a receiver without a fix
+    gga(36_000.0, -33.5, -70.25, talker="GN", quality=4, altitude_m=-12.5),
+    vtg(270.0, 10.0, talker="GA"),
+    *[case[1] for case in BAD_CASES],
+]
+
+
+@pytest.mark.parametrize(
+    ("seed", "eol"), [(1, CRLF), (2, LF), (3, CRLF)], ids=["crlf", "lf", "crlf-cut"]
+)
+def test_bulk_and_per_line_agree(seed, eol):
+    rng = np.random.default_rng(seed)
+    lines = [event.line for event in build(duration=20.0, seed=seed, eol=eol)]
+    for line in EDGE_LINES:
+        lines.insert(int(rng.integers(0, len(lines) + 1)), line)
+    data = b"".join(lines)
+    if seed == 3:
+        data += lines[int(rng.integers(0, len(lines)))][:-1]  # a last line without its end
+    fast = parse_log(data, name="LOG00007.TXT", gps_latency=GPS_LATENCY)
+    slow = logparse._parse(data, "LOG00007.TXT", GPS_LATENCY, per_line=True)
+    assert_identical(fast, slow)
+    # Not vacuous: every reason occurs, most samples were read in bulk and some line by line.
+    assert all(fast.report.bad.values())
+    reader = logparse._Reader(data, "log")
+    reader.read()
+    assert len(reader.bulk["mag"][0]) > 0.9 * len(fast.mag) and reader.mag
+    assert len(reader.bulk["cesium"][0]) > 0.9 * len(fast.cesium) and reader.cesium
+
+
+def test_bulk_and_per_line_agree_on_a_clean_survey(survey):
+    events, parsed = survey
+    data = log_of(events)
+    slow = logparse._parse(data, "LOG00001.TXT", GPS_LATENCY, per_line=True)
+    assert_identical(parsed, slow)
