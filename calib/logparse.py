@@ -590,6 +590,186 @@ def _bulk_cesium(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ..
     return lines, (field, _digits(rows, 12, 4))
 
 
+# NMEA sentences have fields of varying width. A GGA or ZDA line is read in bulk when it is in
+# the plain form of _nmea_fields and each field it uses is a plain number that _plain_number
+# reads exactly; any other line goes to _Reader.read_line.
+
+#: Widest number field read in bulk, and most digits in it (below 2**53: the digits and the
+#: power of ten are exact doubles, and their quotient is the correctly rounded value).
+_BULK_FIELD_WIDTH = 16
+_BULK_DIGITS = 15
+_POWERS_OF_TEN = np.array([float(10**k) for k in range(_BULK_FIELD_WIDTH + 1)])
+_UPPER = _byte_set(b"ABCDEFGHIJKLMNOPQRSTUVWXYZ")
+_PRINTABLE = _byte_set(bytes(range(0x20, 0x7F)))
+
+
+def _gather(data: np.ndarray, starts: np.ndarray, length: np.ndarray):
+    """The bytes of some lines end to end (then ``_BULK_FIELD_WIDTH`` zeros, so that a field's
+    window never runs off the end), and where each line starts in them."""
+    offsets = np.zeros(len(starts), dtype=np.int64)
+    np.cumsum(length[:-1], out=offsets[1:])
+    index = np.arange(int(length.sum()), dtype=np.int64) + np.repeat(starts - offsets, length)
+    return np.concatenate([data[index], np.zeros(_BULK_FIELD_WIDTH, np.uint8)]), offsets
+
+
+def _nmea_fields(data, starts, length, sentence: bytes, field_count: int):
+    """Lines of one NMEA sentence in the plain form: ``$``, a two-capital talker, the
+    sentence, ``field_count`` comma-separated fields (the address included) of printable
+    bytes other than ``$`` and ``*``, and ``*hh`` with a good checksum. Returns their
+    indices, their bytes end to end (``chunk``, see :func:`_gather`), and where each data
+    field starts and stops in ``chunk`` (column ``k - 1`` for field ``k``)."""
+    lines = np.flatnonzero(length >= len(b"$ccGGA,*hh"))
+    at = starts[lines]
+    ok = (data[at] == ord("$")) & _UPPER[data[at + 1]] & _UPPER[data[at + 2]]
+    for column, byte in enumerate(sentence + b",", start=3):
+        ok &= data[at + column] == byte
+    lines = lines[ok & (data[at + length[lines] - 3] == ord("*"))]
+    chunk, offsets = _gather(data, starts[lines], length[lines])
+    row = np.repeat(np.arange(len(lines)), length[lines])
+    star = offsets + length[lines] - 3
+
+    def per_line(flags):
+        return np.bincount(row[flags[: len(row)]], minlength=len(lines))
+
+    hex_digit = _BYTE_CLASSES[ord("h")]
+    ok = hex_digit[chunk[star + 1]] & hex_digit[chunk[star + 2]]
+    ok &= (per_line(~_PRINTABLE[chunk]) == 0) & (per_line(chunk == ord("$")) == 1)
+    ok &= (per_line(chunk == ord("*")) == 1) & (per_line(chunk == ord(",")) == field_count - 1)
+    prefix = np.zeros(len(chunk) + 1, dtype=np.uint8)
+    np.bitwise_xor.accumulate(chunk, out=prefix[1:])
+    sent = _HEX_VALUE[chunk[star + 1]] * 16 + _HEX_VALUE[chunk[star + 2]]
+    ok &= (prefix[offsets + 1] ^ prefix[star]) == sent
+    lines = lines[ok]
+    chunk, offsets = _gather(data, starts[lines], length[lines])
+    commas = np.flatnonzero(chunk == ord(",")).reshape(len(lines), field_count - 1)
+    return lines, chunk, commas + 1, np.column_stack([commas[:, 1:], offsets + length[lines] - 3])
+
+
+def _plain_number(chunk: np.ndarray, first: np.ndarray, stop: np.ndarray):
+    """Fields ``chunk[first:stop]`` of the form ``\\d*(\\.\\d*)?`` (at most
+    ``_BULK_DIGITS`` digits): ``(ok, value, digits before the point, digits, has a point)``."""
+    width = stop - first
+    columns = np.arange(_BULK_FIELD_WIDTH)
+    cells = chunk[first[:, None] + columns]
+    inside = columns < width[:, None]
+    digit = inside & (cells >= ord("0")) & (cells <= ord("9"))
+    point = inside & (cells == ord("."))
+    mantissa = np.zeros(len(first), dtype=np.int64)
+    for column in range(_BULK_FIELD_WIDTH):
+        mantissa = np.where(
+            digit[:, column], mantissa * 10 + (cells[:, column] - ord("0")), mantissa
+        )
+    whole = np.count_nonzero(digit & (np.cumsum(point, axis=1) == 0), axis=1)
+    digits = np.count_nonzero(digit, axis=1)
+    ok = (width <= _BULK_FIELD_WIDTH) & ((digit | point) == inside).all(axis=1)
+    ok &= (np.count_nonzero(point, axis=1) <= 1) & (digits <= _BULK_DIGITS)
+    value = mantissa / _POWERS_OF_TEN[np.minimum(digits - whole, _BULK_FIELD_WIDTH)]
+    return ok, value, whole, digits, point.any(axis=1)
+
+
+def _bulk_float(chunk, first, stop):
+    """:func:`_float` in bulk: (ok, value or NaN for an empty field)."""
+    empty = stop == first
+    sign = ~empty & ((chunk[first] == ord("+")) | (chunk[first] == ord("-")))
+    ok, value, _, digits, _ = _plain_number(chunk, first + sign, stop)
+    value = np.where(sign & (chunk[first] == ord("-")), -value, value)
+    return empty | (ok & (digits > 0)), np.where(empty, math.nan, value)
+
+
+def _bulk_uint(chunk, first, stop, maximum: int):
+    """:func:`_uint` in bulk: (ok, value or -1 for an empty field)."""
+    empty = stop == first
+    ok, value, _, _, point = _plain_number(chunk, first, stop)
+    ok = empty | (ok & ~point & (value <= maximum))
+    return ok, np.where(empty | ~ok, _MISSING_INT, value).astype(np.int64)
+
+
+def _bulk_whole_then_number(chunk, first, stop, whole_digits: int):
+    """Fields of ``whole_digits`` digits then ``\\d{2}(\\.\\d*)?``: (ok, the integer, the
+    number)."""
+    ok, head, head_whole, _, _ = _plain_number(chunk, first, first + whole_digits)
+    ok_rest, rest, rest_whole, _, _ = _plain_number(chunk, first + whole_digits, stop)
+    ok &= ok_rest & (head_whole == whole_digits) & (rest_whole == 2)
+    return ok & (stop - first >= whole_digits + 2), head.astype(np.int64), rest
+
+
+def _bulk_time_of_day(chunk, first, stop):
+    """:func:`_time_of_day` in bulk: (ok, seconds or NaN for an empty field)."""
+    empty = stop == first
+    ok, hours_minutes, seconds = _bulk_whole_then_number(chunk, first, stop, 4)
+    hours, minutes = np.divmod(hours_minutes, 100)
+    ok &= (hours < _HOURS_PER_DAY) & (minutes < _MINUTES_PER_HOUR) & (seconds < _MAX_SECOND)
+    tod = (hours * _MINUTES_PER_HOUR + minutes) * _SECONDS_PER_MINUTE + seconds
+    return empty | ok, np.where(empty, math.nan, tod)
+
+
+def _bulk_angle(chunk, first, stop, hemisphere, degree_digits, signs: bytes, limit: float):
+    """:func:`_angle` in bulk (``hemisphere``: the start and stop of its field): (ok, degrees
+    or NaN when both fields are empty)."""
+    empty = (stop == first) & (hemisphere[1] == hemisphere[0])
+    ok, degrees, minutes = _bulk_whole_then_number(chunk, first, stop, degree_digits)
+    value = degrees + minutes / _MINUTES_PER_HOUR
+    ok &= (minutes < _MINUTES_PER_HOUR) & (value <= limit)
+    one = hemisphere[1] - hemisphere[0] == 1
+    positive = one & (chunk[hemisphere[0]] == signs[0])
+    negative = one & (chunk[hemisphere[0]] == signs[1])
+    value = np.where(negative, -value, value)
+    return empty | (ok & (positive | negative)), np.where(empty, math.nan, value)
+
+
+def _bulk_gga(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """GGA lines in the plain form whose fields :func:`_parse_gga` accepts: their indices
+    and the values it gives."""
+    lines, chunk, first, stop = _nmea_fields(data, starts, length, b"GGA", _GGA_FIELDS[0])
+
+    def field(k):
+        return chunk, first[:, k - 1], stop[:, k - 1]
+
+    found = [
+        _bulk_time_of_day(*field(1)),
+        _bulk_angle(*field(2), field(3)[1:], 2, b"NS", _LAT_LIMIT),
+        _bulk_angle(*field(4), field(5)[1:], 3, b"EW", _LON_LIMIT),
+        _bulk_uint(*field(6), _MAX_QUALITY),
+        _bulk_uint(*field(7), _MAX_SATELLITES),
+        _bulk_float(*field(8)),
+        _bulk_float(*field(9)),
+    ]
+    good = np.logical_and.reduce([ok for ok, _ in found])
+    return lines[good], tuple(value[good] for _, value in found)
+
+
+def _bulk_zda(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """ZDA lines in the plain form whose fields :func:`_parse_zda` accepts: their indices and
+    the date and time it gives (an object array of datetimes or None)."""
+    lines, chunk, first, stop = _nmea_fields(data, starts, length, b"ZDA", _ZDA_FIELDS[0])
+    ok, tod = _bulk_time_of_day(chunk, first[:, 0], stop[:, 0])
+    parts = []
+    for k, maximum in ((2, _MAX_DAY), (3, _MAX_MONTH), (4, _MAX_YEAR)):
+        ok_part, value = _bulk_uint(chunk, first[:, k - 1], stop[:, k - 1], maximum)
+        ok &= ok_part
+        parts.append(value)
+    when = np.full(len(lines), None, dtype=object)
+    days, months, years, seconds_of_day = (values.tolist() for values in (*parts, tod))
+    for index in np.flatnonzero(ok).tolist():
+        day, month, year, seconds = days[index], months[index], years[index], seconds_of_day[index]
+        if math.isnan(seconds) or _MISSING_INT in (day, month, year):
+            continue
+        try:
+            when[index] = _dt.datetime(year, month, day) + _dt.timedelta(seconds=seconds)
+        except (ValueError, OverflowError):
+            ok[index] = False  # _parse_zda reports it
+    return lines[ok], (when[ok],)
+
+
+#: The bulk readers in turn, each on the lines the ones before did not take.
+_BULK_READERS = (
+    ("mag", _bulk_pmag),
+    ("cesium", _bulk_cesium),
+    ("gga", _bulk_gga),
+    ("zda", _bulk_zda),
+)
+
+
 # --- the line reader ----------------------------------------------------------------------
 
 
@@ -609,16 +789,18 @@ class _Reader:
         self.vtg: list[tuple] = []
         #: Records read in bulk (:meth:`read`), per channel: one array per column.
         self.bulk: dict[str, tuple[np.ndarray, ...]] = {}
+        #: The bytes the ``start`` of :meth:`read_line` counts in (see :attr:`prefix`).
+        self.xor_source = data
         self._prefix: bytes | None = None
 
     @property
     def prefix(self) -> bytes:
-        """``prefix[i]`` is the XOR of ``data[:i]``: the XOR of ``data[a:b]`` is
+        """``prefix[i]`` is the XOR of ``xor_source[:i]``: the XOR of ``xor_source[a:b]`` is
         ``prefix[a] ^ prefix[b]`` (computed when a line first needs it)."""
         if self._prefix is None:
-            prefix = np.zeros(len(self.data) + 1, dtype=np.uint8)
-            if self.data:
-                np.bitwise_xor.accumulate(np.frombuffer(self.data, np.uint8), out=prefix[1:])
+            source = np.frombuffer(self.xor_source, dtype=np.uint8)
+            prefix = np.zeros(len(source) + 1, dtype=np.uint8)
+            np.bitwise_xor.accumulate(source, out=prefix[1:])
             self._prefix = prefix.tobytes()
         return self._prefix
 
@@ -627,9 +809,8 @@ class _Reader:
         self.report.messages.append(f"{self.name}:{line}: {reason}: {detail}")
 
     def read(self) -> None:
-        """Read every line: the frames in the logger's own fixed forms in bulk
-        (:func:`_bulk_pmag`, :func:`_bulk_cesium`), every other line with :meth:`read_line`,
-        with the same results as :meth:`read_per_line`."""
+        """Read every line: the lines the :data:`_BULK_READERS` take in bulk, every other
+        line with :meth:`read_line`, with the same results as :meth:`read_per_line`."""
         data = np.frombuffer(self.data, dtype=np.uint8)
         ends = np.flatnonzero(data == _LF)
         starts = np.zeros(len(ends), dtype=np.int64)
@@ -640,14 +821,19 @@ class _Reader:
         stops = ends - crlf
         self.report.line_endings["CRLF"] = int(np.count_nonzero(crlf))
         self.report.line_endings["LF"] = len(ends) - self.report.line_endings["CRLF"]
-        done = np.zeros(len(ends), dtype=bool)
-        for kind, bulk_reader in (("mag", _bulk_pmag), ("cesium", _bulk_cesium)):
-            taken, columns = bulk_reader(data, starts, stops - starts)
-            self.bulk[kind] = (taken + 1, *columns)  # line numbers count from 1
-            done[taken] = True
-        rest = np.flatnonzero(~done)
-        for index, start, stop in zip(rest.tolist(), starts[rest].tolist(), stops[rest].tolist()):
-            self.read_line(index + 1, start, self.data[start:stop])
+        rest = np.arange(len(ends))
+        for kind, bulk_reader in _BULK_READERS:
+            taken, columns = bulk_reader(data, starts[rest], stops[rest] - starts[rest])
+            self.bulk[kind] = (rest[taken] + 1, *columns)  # line numbers count from 1
+            rest = np.delete(rest, taken)
+        pieces = [self.data[start:stop] for start, stop in zip(starts[rest].tolist(),
+                                                               stops[rest].tolist())]
+        # The checksums of the rest are computed on their bytes alone.
+        self.xor_source = b"".join(pieces)
+        offset = 0
+        for index, raw in zip(rest.tolist(), pieces):
+            self.read_line(index + 1, offset, raw)
+            offset += len(raw)
         if tail:
             self.fail(
                 len(ends) + 1, TRUNCATED, f"the last line has no line end ({len(tail)} bytes)"
@@ -957,8 +1143,8 @@ def _parse(data: bytes, name: str, gps_latency: float, *, per_line: bool = False
     gga_columns = reader.columns("gga", (np.int64,) + (np.float64,) * 3 + (np.int64,) * 2
                                  + (np.float64,) * 2)
     gga_line, tod, quality = gga_columns[0], gga_columns[1], gga_columns[4]
-    zda_line = _column(reader.zda, 0, np.int64)
-    zda_datetimes = [row[1] for row in reader.zda]
+    zda_line, zda_datetimes = reader.columns("zda", (np.int64, object))
+    zda_datetimes = zda_datetimes.tolist()
 
     anchors = _find_anchors(gga_line, tod, quality, zda_line, zda_datetimes)
     anchor_t = anchors.epoch + gps_latency

@@ -1030,6 +1030,69 @@ EDGE_LINES = [
     rmc(DAY, 47.0, 8.0),
     gsa([1, 2, 3]),
     nmea_sentence("GPGGA,,,,,,0,00,,,M,,M,,"),  # a receiver without a fix
+    _lower_hex(GGA_BODY.replace(",E,1,08,", ",E,1,12,")),
+    *[
+        nmea_sentence(GGA_BODY.replace(old, new))
+        for old, new in [
+            ("100000.00", "235960.99"),  # a leap second
+            ("100000.00", "100000"),
+            ("100000.00", "100000."),
+            ("100000.00", "1000000.00"),  # number
+            ("100000.00", "10000.00"),  # number
+            ("100000.00", ""),
+            ("4730.00000", "4730"),
+            ("4730.00000", "4759.99999"),
+            ("4730.00000", "9000.00000"),
+            ("4730.00000", "9000.00001"),  # number
+            ("4730.00000", "47.30"),  # number
+            ("4730.00000,N", ","),
+            ("4730.00000,N", "4730.00000,"),  # number
+            ("4730.00000,N", ",N"),  # number
+            (",N,", ",NN,"),  # number
+            (",N,", ",n,"),  # number
+            (",N,", ",S,"),
+            ("00830.00000,E", "18000.0000,W"),
+            ("00830.00000,E", "18000.0001,W"),  # number
+            (",E,1,08,", ",E,9,999,"),
+            (",E,1,08,", ",E,10,08,"),  # number
+            (",E,1,08,", ",E,1,1000,"),  # number
+            (",E,1,08,", ",E,01,0008,"),
+            (",E,1,08,", ",E,,,"),
+            (",0.9,", ",.5,"),
+            (",0.9,", ",5.,"),
+            (",0.9,", ",+0.9,"),
+            (",0.9,", ",.,"),  # number
+            (",0.9,", ",+,"),  # number
+            (",0.9,", ",1e5,"),  # number
+            (",0.9,", ",0.9.,"),  # number
+            (",0.9,", ",1234567890.12345,"),  # 15 digits
+            (",0.9,", ",12345678901.12345,"),  # 16 digits
+            (",0.9,", ",1234567890123456,"),
+            (",100.0,", ",-0.0,"),
+            (",100.0,", ",-12.25,"),
+            (",M,45.0,M,,", ",M,45.0,M,*,"),  # a '*' in a field: read line by line
+            (",M,45.0,M,,", ",M,45.0,M,,,"),  # field_count
+            ("GPGGA", "G1GGA"),  # unknown_sentence
+            ("GPGGA", "gpGGA"),  # unknown_sentence
+        ]
+    ],
+    b"$GPGGA,10$" + GGA_GOOD,
+    *[
+        nmea_sentence("GPZDA," + fields)
+        for fields in [
+            "235960.50,31,12,2024,00,00",
+            "120000.00,29,02,2023,00,00",  # number
+            "120000.00,1,2,0001,00,00",
+            "120000.00,01,01,0000,00,00",  # number
+            "120000.00,01,01,10000,00,00",  # number
+            ",,,,00,00",
+            "120000.00,,,,,",
+            "120000.00,01,01,2024,+01,x",
+            "120000.00,01,01,2024,00",  # field_count
+            "120000.00,01,02,2024,00,*",  # a '*' in a field: read line by line
+        ]
+    ],
+    b"xx" + zda(DAY + dt.timedelta(hours=5)),
     gga(36_000.0, -33.5, -70.25, talker="GN", quality=4, altitude_m=-12.5),
     vtg(270.0, 10.0, talker="GA"),
     *[case[1] for case in BAD_CASES],
@@ -1054,8 +1117,9 @@ def test_bulk_and_per_line_agree(seed, eol):
     assert all(fast.report.bad.values())
     reader = logparse._Reader(data, "log")
     reader.read()
-    assert len(reader.bulk["mag"][0]) > 0.9 * len(fast.mag) and reader.mag
-    assert len(reader.bulk["cesium"][0]) > 0.9 * len(fast.cesium) and reader.cesium
+    for kind in ("mag", "cesium", "gga", "zda"):
+        assert len(reader.bulk[kind][0]) > 0.9 * len(getattr(fast, kind)), kind
+        assert getattr(reader, kind), kind
 
 
 def test_bulk_and_per_line_agree_on_a_clean_survey(survey):
