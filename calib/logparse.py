@@ -590,9 +590,9 @@ def _bulk_cesium(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ..
     return lines, (field, _digits(rows, 12, 4))
 
 
-# NMEA sentences have fields of varying width. A GGA or ZDA line is read in bulk when it is in
-# the plain form of _nmea_fields and each field it uses is a plain number that _plain_number
-# reads exactly; any other line goes to _Reader.read_line.
+# NMEA sentences have fields of varying width. A GGA, ZDA or VTG line is read in bulk when it
+# is in the plain form of _nmea_fields and each field it uses is a plain number that
+# _plain_number reads exactly; any other line goes to _Reader.read_line.
 
 #: Widest number field read in bulk, and most digits in it (below 2**53: the digits and the
 #: power of ten are exact doubles, and their quotient is the correctly rounded value).
@@ -761,12 +761,31 @@ def _bulk_zda(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ...]]
     return lines[ok], (when[ok],)
 
 
+def _bulk_vtg(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """VTG lines (of either field count) in the plain form whose fields :func:`_parse_vtg`
+    accepts: their indices and the course and speed it gives."""
+    lines, course, speed = [], [], []
+    for field_count in _VTG_FIELDS:
+        found, chunk, first, stop = _nmea_fields(data, starts, length, b"VTG", field_count)
+        (ok, degrees), (ok_knots, knots), (ok_kmh, kmh) = (
+            _bulk_float(chunk, first[:, k - 1], stop[:, k - 1]) for k in (1, 5, 7)
+        )
+        good = ok & ok_knots & ok_kmh
+        lines.append(found[good])
+        course.append(degrees[good])
+        speed.append(np.where(np.isnan(knots), kmh * _KMH_M_S, knots * _KNOT_M_S)[good])
+    order = np.argsort(np.concatenate(lines), kind="stable")
+    return np.concatenate(lines)[order], (np.concatenate(course)[order],
+                                          np.concatenate(speed)[order])
+
+
 #: The bulk readers in turn, each on the lines the ones before did not take.
 _BULK_READERS = (
     ("mag", _bulk_pmag),
     ("cesium", _bulk_cesium),
     ("gga", _bulk_gga),
     ("zda", _bulk_zda),
+    ("vtg", _bulk_vtg),
 )
 
 

@@ -1095,6 +1095,18 @@ EDGE_LINES = [
     b"xx" + zda(DAY + dt.timedelta(hours=5)),
     gga(36_000.0, -33.5, -70.25, talker="GN", quality=4, altitude_m=-12.5),
     vtg(270.0, 10.0, talker="GA"),
+    *[
+        nmea_sentence("GPVTG," + fields)
+        for fields in [
+            "045.0,T,,M,29.0,N,53.7,K",  # NMEA before 2.3: no mode
+            "045.0,T,,M,,N,53.7,K,A",  # speed from km/h
+            ",T,,M,,N,,K,N",
+            "-0.0,T,,M,-0.0,N,53.7,K,A",
+            "045.0,T,,M,29.0,N,53.7,K,A,",  # field_count
+            "045.0,T,,M,29.0,N,5*3.7,K,A",  # a '*' in a field: number, line by line
+            "045.0,T,,M,29,N,53.7,K,*",  # a '*' in a field: read line by line
+        ]
+    ],
     *[case[1] for case in BAD_CASES],
 ]
 
@@ -1117,7 +1129,7 @@ def test_bulk_and_per_line_agree(seed, eol):
     assert all(fast.report.bad.values())
     reader = logparse._Reader(data, "log")
     reader.read()
-    for kind in ("mag", "cesium", "gga", "zda"):
+    for kind in ("mag", "cesium", "gga", "zda", "vtg"):
         assert len(reader.bulk[kind][0]) > 0.9 * len(getattr(fast, kind)), kind
         assert getattr(reader, kind), kind
 
