@@ -78,7 +78,9 @@ hard iron: its offset, 3.5 % of the field in paper A's Table 1).
   45 %. Smaller faults are left to the fit's robust loss.
 
 Readings more than ``max_gap`` seconds apart (by default 5 × the median interval) are not
-neighbours: the test restarts after a dropout, where the aircraft may have moved on. A
+neighbours: the test restarts after a dropout, where the aircraft may have moved on, and
+after a step back in time (a sensor restart in the log). Times must be finite; a log
+without times can pass its line numbers. A
 reading with fewer than 3 valid neighbours cannot be judged and is kept (counted in
 ``untested``).
 """
@@ -188,15 +190,16 @@ class ScreenResult:
 def screen_reference(t, field_nt, *, earth_range=EARTH_RANGE_NT, floor_nt=SPIKE_FLOOR_NT,
                      k=SIGMAS, half_window=HALF_WINDOW, max_gap=None):
     """Screen a reference's total-field readings ``field_nt`` (nT) at times ``t`` (s,
-    finite, non-decreasing): reject those not finite, outside ``earth_range`` (nT) or
-    spiking from their neighbours (see the module's doc). Returns a :class:`ScreenResult`."""
+    finite): reject those not finite, outside ``earth_range`` (nT) or spiking from their
+    neighbours (see the module's doc). Returns a :class:`ScreenResult`."""
     t = _check_times(t)
     values = _check_series(field_nt, t.size, "Reference field")
     low, high = _check_range(earth_range, "Earth range", positive=True)
     floor_nt = _check_nonnegative(floor_nt, "Spike floor")
     k = _check_positive(k, "Number of robust standard deviations k")
     half_window = _check_half_window(half_window)
-    segment = _segments(t, max_gap)
+    gap = _gap_seconds(t, max_gap)
+    segment = _segments(t, gap)
 
     reason = np.full(t.size, -1)
     finite = np.isfinite(values)
@@ -218,18 +221,17 @@ def screen_reference(t, field_nt, *, earth_range=EARTH_RANGE_NT, floor_nt=SPIKE_
                 f"neighbours ({hampel.median[i]:,.3f} nT); limit {hampel.limit[i]:,.1f} nT")
 
     limits = {"earth_range_nT": [low, high], "spike_floor_nT": floor_nt, "k": k,
-              "half_window": half_window, "max_gap_s": _gap_seconds(t, max_gap)}
+              "half_window": half_window, "max_gap_s": gap if math.isfinite(gap) else None}
     return _result("reference readings", reason, REFERENCE_REASONS, values, why,
                    hampel.untested, limits)
 
 
 def screen_samples(t, b, r=None, *, scale_range=SCALE_RANGE, jump_fraction=JUMP_FRACTION,
                    k=SIGMAS, half_window=HALF_WINDOW, max_gap=None):
-    """Screen magnetometer samples ``b`` ((N, 3), nT) at times ``t`` (s, finite,
-    non-decreasing), with the reference total field ``r`` at each sample if known (nT;
-    NaN where there is none): reject those with a component not finite, a magnitude
-    outside ``scale_range`` of the data's scale, or a magnitude jumping from its
-    neighbours' (see the module's doc). Returns a :class:`ScreenResult` whose examples'
+    """Screen magnetometer samples ``b`` ((N, 3), nT) at times ``t`` (s, finite), with the
+    reference total field ``r`` at each sample if known (nT; NaN where there is none):
+    reject those with a component not finite, a magnitude outside ``scale_range`` of the
+    data's scale, or a magnitude jumping from its neighbours' (see the module's doc). Returns a :class:`ScreenResult` whose examples'
     values are ``|b|``."""
     t = _check_times(t)
     b = np.asarray(b, dtype=float)
@@ -242,7 +244,8 @@ def screen_samples(t, b, r=None, *, scale_range=SCALE_RANGE, jump_fraction=JUMP_
     jump_fraction = _check_positive(jump_fraction, "Jump fraction")
     k = _check_positive(k, "Number of robust standard deviations k")
     half_window = _check_half_window(half_window)
-    segment = _segments(t, max_gap)
+    gap = _gap_seconds(t, max_gap)
+    segment = _segments(t, gap)
     if r is not None:
         r = _check_series(r, t.size, "Reference")
 
@@ -271,7 +274,7 @@ def screen_samples(t, b, r=None, *, scale_range=SCALE_RANGE, jump_fraction=JUMP_
                 f"{hampel.limit[i]:,.1f} nT")
 
     limits = {"scale_range": [low, high], "jump_fraction": jump_fraction, "k": k,
-              "half_window": half_window, "max_gap_s": _gap_seconds(t, max_gap),
+              "half_window": half_window, "max_gap_s": gap if math.isfinite(gap) else None,
               "with_reference": r is not None}
     return _result("magnetometer samples", reason, SAMPLE_REASONS, magnitude, why,
                    hampel.untested, limits)
@@ -353,20 +356,20 @@ def _result(what, reason, names, values, why, untested, limits):
 # --- segments and input checks ---------------------------------------------------------
 
 def _gap_seconds(t, max_gap):
+    """The largest interval between neighbours: ``max_gap``, or :data:`GAP_INTERVALS` times
+    the median forward interval (infinite when no time moves forward)."""
     if max_gap is not None:
-        return float(max_gap)
+        return _check_positive(max_gap, "Largest gap max_gap")
     steps = np.diff(t)
+    steps = steps[steps > 0]
     return GAP_INTERVALS * float(np.median(steps)) if steps.size else math.inf
 
 
-def _segments(t, max_gap):
-    """Segment number of each reading: a new one after each interval over the gap."""
-    if max_gap is not None:
-        max_gap = _check_positive(max_gap, "Largest gap max_gap")
-    gap = _gap_seconds(t, max_gap)
-    if gap <= 0:                           # most times repeat: no interval to judge by
-        return np.zeros(t.size, int)
-    return np.concatenate([[0], np.cumsum(np.diff(t) > gap)]).astype(int)
+def _segments(t, gap):
+    """Segment number of each reading: a new one after each interval over ``gap`` and at
+    each step back in time."""
+    steps = np.diff(t)
+    return np.concatenate([[0], np.cumsum((steps > gap) | (steps < 0))]).astype(int)
 
 
 def _check_times(t):
@@ -375,11 +378,8 @@ def _check_times(t):
         raise ValueError(f"Times must be a 1-D array, not shape {t.shape}")
     if not np.all(np.isfinite(t)):
         raise ValueError(f"Times must be finite, not NaN or infinite "
-                         f"({int(np.count_nonzero(~np.isfinite(t)))} of {t.size})")
-    if np.any(np.diff(t) < 0):
-        first = int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
-        raise ValueError(f"Times must not decrease, not {float(t[first - 1])!r} then "
-                         f"{float(t[first])!r} at index {first}")
+                         f"({int(np.count_nonzero(~np.isfinite(t)))} of {t.size}); without "
+                         "times, pass the readings' line numbers")
     return t
 
 
