@@ -28,7 +28,7 @@ from .heading import (align_heading, straight_legs, tilt_compensated_heading, tr
                       wrap_degrees)
 from .logparse import parse_log, to_arrays
 from .noise import allan_deviation
-from .scalar import PARAMETERS, apply_scalar, calibrate_scalar
+from .scalar import OBJECTIVES, PARAMETERS, apply_scalar, calibrate_scalar
 
 
 __all__ = ["CalibrationError", "ReportError", "CalibrationRun", "HeadingAnalysis",
@@ -486,9 +486,11 @@ def _heading(parsed, t, use_time, vectors, attitude):
                            reference=reference, messages=messages)
 
 
-def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None):
+def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None,
+                   objective="eiv"):
     """Calibrate the largest log on a card image (or partition image, or plain log).
-    ``attitude`` is an optional attitude file (:func:`read_attitude`).
+    ``attitude`` is an optional attitude file (:func:`read_attitude`); ``objective`` is the
+    scalar fit's (:func:`~maglog.calib.scalar.calibrate_scalar`: "eiv" or "paper").
 
     Bad input ends in a :class:`CalibrationError` (or :class:`~maglog.calib.card.CardError`
     from the card reader) that says what is wrong and where; a result that is usable but
@@ -498,15 +500,18 @@ def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None):
     seed = check_seed(seed)
     if method not in METHODS:
         raise CalibrationError(f"method must be one of {', '.join(METHODS)}, not {method!r}")
+    if objective not in OBJECTIVES:
+        raise CalibrationError(f"objective must be one of {', '.join(OBJECTIVES)}, not "
+                               f"{objective!r}")
     attitude = None if attitude is None else read_attitude(attitude)
     with _warnings.catch_warnings(), np.errstate(all="ignore"):
         # Library warnings (numpy on a degenerate stretch, matplotlib) are not the user's
         # business: whatever matters is in the result's warnings.
         _warnings.simplefilter("ignore")
-        return _calibrate(path, ref, method, seed, attitude)
+        return _calibrate(path, ref, method, seed, attitude, objective)
 
 
-def _calibrate(path, ref, method, seed, attitude):
+def _calibrate(path, ref, method, seed, attitude, objective):
     logs = read_logs(path)
     if not logs:
         raise CalibrationError(f"{path}: no LOG*.TXT file found")
@@ -539,7 +544,7 @@ def _calibrate(path, ref, method, seed, attitude):
                 raise CalibrationError(f"{name}: ellipsoid fit refused: {result.message}")
             vectors = (b - result.center) @ result.W.T
         else:
-            result = calibrate_scalar(b, r, method=method, seed=seed)
+            result = calibrate_scalar(b, r, method=method, seed=seed, objective=objective)
             vectors = apply_scalar(result.K, result.c, b)
     except ValueError as error:
         # The fits' own checks of what samples can determine (a stuck axis, too few

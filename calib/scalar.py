@@ -1,13 +1,23 @@
 """Scalar calibration of a triaxial magnetometer against a total-field reference.
 
 The model of the original paper: the calibrated field is ``K @ b - c`` with ``K`` upper
-triangular and ``c`` an offset, nine unknowns, chosen to minimise
+triangular and ``c`` an offset, nine unknowns. Two objectives:
 
-    sum_i (|K b_i - c| - r_i)^2
+- ``objective="eiv"`` (the default): errors in variables, by adjusted least squares on the
+  samples' sufficient statistics (:mod:`.eiv`): unbiased when the magnetometer itself is
+  noisy, with a robust loss, sandwich uncertainties and each parameter's dilution of
+  precision. It is the default because the paper's objective is biased by the
+  magnetometer's noise wherever the coverage is weak (c3 by about 100 nT on a UAV pattern
+  with paper A's Table 1 at 100 nT, whatever the number of samples), and a survey applies
+  the parameters to attitudes the fit did not see.
+- ``objective="paper"``: the paper's own, ``sum_i (|K b_i - c| - r_i)^2``, with the
+  reference ``r_i`` taken as the only noisy quantity (the same robust loss around it).
 
-where ``r_i`` is the reference total field (the cesium magnetometer, a constant, or IGRF at
-the GPS position). The global search is the standard PSO (``_pso``, numba), the polish
-``scipy.optimize.least_squares`` (MINPACK's Levenberg-Marquardt, the bounded trust-region
+``r_i`` is the reference total field (the cesium magnetometer, a constant, or IGRF at the
+GPS position). The global search is the standard PSO (``_pso``): by default on the moment
+surrogate, whose evaluation does not visit the samples (the whole swarm compiled with
+numba, about 2 ms for 40 particles and 300 iterations whatever the flight's length); the
+paper's polish is ``scipy.optimize.least_squares`` (MINPACK's Levenberg-Marquardt, the bounded trust-region
 method when LM leaves the search box) with the analytic Jacobian, which also gives the
 parameter uncertainties. The trivial zero-cost solution (K = 0, |c| = r) is excluded by
 keeping K's diagonal positive and away from zero.
@@ -21,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _pso
+from . import _pso, eiv
 from ._samples import MAX_FIELD_NT, check_samples
 
 
@@ -59,6 +69,19 @@ class ScalarResult:
     status: int = 0            # least_squares' status: 1-4 converged, 0 evaluation limit
     solver: str = "lm"         # the polish that gave x: "lm" or "trf" (bounded)
     at_bound: list = field(default_factory=list)   # parameters on the search box
+    objective: str = "eiv"     # "eiv" (errors in variables) or "paper"
+    dop: np.ndarray = None     # dilution of precision per parameter (nT per nT / sqrt(N))
+    determined: np.ndarray = None  # bool per parameter: dop within eiv.UNDETERMINED_DOP
+    held: np.ndarray = None    # bool per parameter: held to the isotropic prior
+    kept: np.ndarray = None    # bool per sample: fitted (not screened out, not rejected)
+    robust_cut_nT: float = float("inf")   # Talwar's cut-off on the residual
+    noise: dict = field(default_factory=dict)   # estimated noise: magnetometer, reference
+    covariance: np.ndarray = None  # the sandwich covariance ("eiv")
+
+    @property
+    def rejected(self):
+        """Samples the robust loss left out (not counting those ``keep`` excluded)."""
+        return 0 if self.kept is None else int(np.count_nonzero(~self.kept))
 
     @property
     def P(self):
@@ -80,6 +103,17 @@ class ScalarResult:
             "success": self.success, "message": self.message, "iterations": self.nit,
             "status": self.status, "solver": self.solver, "at_bound": list(self.at_bound),
             "condition": self.condition, "warnings": list(self.warnings),
+            "objective": self.objective,
+            "dilution_of_precision": None if self.dop is None else
+            dict(zip(PARAMETERS, np.asarray(self.dop).tolist())),
+            "undetermined": [] if self.determined is None else
+            [n for n, d in zip(PARAMETERS, self.determined) if not d],
+            "held_to_prior": [] if self.held is None else
+            [n for n, h in zip(PARAMETERS, self.held) if h],
+            "samples_fitted": None if self.kept is None else int(self.kept.sum()),
+            "rejected_by_robust_loss": self.rejected,
+            "robust_cut_nT": self.robust_cut_nT,
+            "noise_estimate_nT": dict(self.noise),
         }
 
 
@@ -191,8 +225,47 @@ def _check(b, r):
     return b, r
 
 
-def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300,
-                     kernel="numba", pso_samples=2000, solver="lm"):
+OBJECTIVES = ("eiv", "paper")
+KERNELS = ("moments", "numba", "numpy")
+
+
+def _box(b, r):
+    """The search box (lower, upper) and the data's scale (median r / median |b|)."""
+    scale = float(np.median(r) / np.median(np.linalg.norm(b, axis=1)))
+    reach = OFFSET_FRACTION * float(np.max(r))
+    lower = np.array([DIAGONAL_RANGE[0] * scale, -OFF_DIAGONAL * scale, -OFF_DIAGONAL * scale,
+                      DIAGONAL_RANGE[0] * scale, -OFF_DIAGONAL * scale,
+                      DIAGONAL_RANGE[0] * scale, -reach, -reach, -reach])
+    upper = np.array([DIAGONAL_RANGE[1] * scale, OFF_DIAGONAL * scale, OFF_DIAGONAL * scale,
+                      DIAGONAL_RANGE[1] * scale, OFF_DIAGONAL * scale,
+                      DIAGONAL_RANGE[1] * scale, reach, reach, reach])
+    return lower, upper, scale
+
+
+def _swarm(b, r, lower, upper, *, kernel, seed, particles, iterations, pso_samples):
+    """The swarm's best parameters (nT units) and its iterations. ``kernel="moments"``
+    searches the algebraic surrogate from the samples' power sums (no sample visited per
+    evaluation); "numba" and "numpy" search the exact cost on at most ``pso_samples``
+    evenly spaced samples."""
+    if kernel == "moments":
+        field_nt = float(np.median(r))
+        s = eiv.moments(b, r, shift=np.zeros(3), scale=field_nt).matrix()
+        units = np.array([1.0] * 6 + [field_nt] * 3)
+        best, _, nit, _ = _pso.pso_moments(s, lower / units, upper / units,
+                                           particles=particles, iterations=iterations,
+                                           seed=seed)
+        return best * units, nit
+    cost_fn = _pso.cost_numba if kernel == "numba" else _pso.cost_numpy
+    step = max(1, b.shape[0] // pso_samples)
+    b_s, r_s = b[::step], r[::step]
+    best, _, nit, _ = _pso.pso(lambda x: cost_fn(x, b_s, r_s), lower, upper,
+                               particles=particles, iterations=iterations, seed=seed)
+    return best, nit
+
+
+def calibrate_scalar(b, r, *, objective="eiv", method="pso", seed=0, particles=40,
+                     iterations=300, kernel="moments", pso_samples=2000, solver="lm",
+                     robust=True, keep=None, reference_noise=None):
     """Fit K and c so that |K b_i - c| matches the reference r_i.
 
     Parameters
@@ -202,106 +275,220 @@ def calibrate_scalar(b, r, *, method="pso", seed=0, particles=40, iterations=300
         distinct vectors (``ValueError`` otherwise).
     r : float or (N,) array
         Reference total field, nT.
+    objective : "eiv" or "paper"
+        Errors in variables (unbiased under the magnetometer's noise; :mod:`.eiv`), or the
+        paper's ``sum (|K b - c| - r)^2``.
     method : "pso" or "lm"
-        PSO then the least-squares polish, or the polish alone from the identity.
+        The swarm's best as the start, or the deterministic start alone (the linear
+        solution of the moment problem for "eiv", the identity for "paper").
     seed, particles, iterations :
         PSO settings (the swarm is seeded: the same call gives the same result).
-    kernel : "numba" or "numpy"
-        Which twin evaluates the swarm's cost.
-    pso_samples : int
-        The swarm searches on at most this many samples, evenly spaced (the polish uses
-        them all): a long flight's global search costs no more than a short one's.
+    kernel : "moments", "numba" or "numpy"
+        What the swarm evaluates: the moment surrogate (default; independent of N), or the
+        exact cost on at most ``pso_samples`` samples (numba or numpy twin).
     solver : "lm" or "trf"
-        The polish: ``scipy.optimize.least_squares`` with MINPACK's Levenberg-Marquardt
-        (falling back to the bounded "trf" when its solution leaves the search box), or
-        "trf" with the box throughout. bench/calib/lm.py compares them (and the hand-written
-        LM they replaced) on the project's flights: "lm" is as fast as the hand-written one
-        and 5-40 times faster than "trf".
+        The paper objective's polish: ``scipy.optimize.least_squares`` with MINPACK's
+        Levenberg-Marquardt (falling back to the bounded "trf" when its solution leaves the
+        search box), or "trf" with the box throughout.
+    robust : bool
+        Talwar's loss: samples more than ``eiv.ROBUST_K`` robust standard deviations off the
+        fit are left out (counted in ``rejected``), and the fit repeated.
+    keep : (N,) bool array or None
+        Samples allowed at all (a screening's verdict); the others are not fitted.
+    reference_noise : float or None
+        The reference's noise, nT (None: estimated from its second differences).
 
-    The result's ``success`` is True only when the solver's own convergence test passed
-    and no parameter ends on the search box; ``status`` is least_squares' (1-4 converged,
-    0 evaluation limit), ``message`` says which test, or why not.
+    The result's ``success`` is True only when the solver converged and no parameter ends
+    on the search box. ``determined`` says which parameters the attitude coverage
+    determines (dilution of precision ``dop`` within ``eiv.UNDETERMINED_DOP``); a parameter
+    in ``held`` is not determined by the data at all and was held to the isotropic prior:
+    its uncertainty is infinite.
     """
     b, r = _check(b, r)
+    if objective not in OBJECTIVES:
+        raise ValueError(f"Objective must be one of {', '.join(OBJECTIVES)}, not "
+                         f"{objective!r}")
     if method not in ("pso", "lm"):
         raise ValueError(f"Method must be 'pso' or 'lm', not {method!r}")
-    if kernel not in ("numba", "numpy"):
-        raise ValueError(f"Kernel must be 'numba' or 'numpy', not {kernel!r}")
+    if kernel not in KERNELS:
+        raise ValueError(f"Kernel must be one of {', '.join(KERNELS)}, not {kernel!r}")
     if solver not in ("lm", "trf"):
         raise ValueError(f"Solver must be 'lm' or 'trf', not {solver!r}")
-    scale = float(np.median(r) / np.median(np.linalg.norm(b, axis=1)))
-    reach = OFFSET_FRACTION * float(np.max(r))
-    lower = np.array([DIAGONAL_RANGE[0] * scale, -OFF_DIAGONAL * scale, -OFF_DIAGONAL * scale,
-                      DIAGONAL_RANGE[0] * scale, -OFF_DIAGONAL * scale,
-                      DIAGONAL_RANGE[0] * scale, -reach, -reach, -reach])
-    upper = np.array([DIAGONAL_RANGE[1] * scale, OFF_DIAGONAL * scale, OFF_DIAGONAL * scale,
-                      DIAGONAL_RANGE[1] * scale, OFF_DIAGONAL * scale,
-                      DIAGONAL_RANGE[1] * scale, reach, reach, reach])
+    if keep is not None:
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != (b.shape[0],):
+            raise ValueError(f"keep must be one bool per sample ({b.shape[0]}), not shape "
+                             f"{keep.shape}")
+        if keep.sum() < len(PARAMETERS) + 1:
+            raise ValueError(f"Only {int(keep.sum())} samples kept; at least "
+                             f"{len(PARAMETERS) + 1} are needed for nine parameters")
+    lower, upper, scale = _box(b, r)
     nit = 0
-    identity = np.array([scale, 0, 0, scale, 0, scale, 0, 0, 0], dtype=float)
-    starts = [identity]
+    start = None
     if method == "pso":
-        cost_fn = _pso.cost_numba if kernel == "numba" else _pso.cost_numpy
-        step = max(1, b.shape[0] // pso_samples)
-        b_s, r_s = b[::step], r[::step]
-        best, _, nit, _ = _pso.pso(lambda x: cost_fn(x, b_s, r_s), lower, upper,
-                                   particles=particles, iterations=iterations, seed=seed)
-        starts.insert(0, best)
-    # Polish every start and keep the best: a swarm can settle against the box in a
-    # poorly determined direction, where the identity start walks straight to the minimum.
-    polished = [_polish(start, b, r, lower, upper, solver=solver) for start in starts]
-    best = min(polished, key=lambda p: p.cost if np.isfinite(p.cost) else np.inf)
-    nit += best.nfev
+        allowed = slice(None) if keep is None else keep
+        start, nit = _swarm(b[allowed], r[allowed], lower, upper, kernel=kernel, seed=seed,
+                            particles=particles, iterations=iterations,
+                            pso_samples=pso_samples)
+    if objective == "eiv":
+        result = _fit_eiv(b, r, start, keep, robust, reference_noise)
+    else:
+        result = _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver,
+                            reference_noise)
+    result.nit += nit
+    result.objective = objective
+    _check_bounds(result, lower, upper)
+    return result
 
-    a = best.jac.T @ best.jac
-    # Conditioning with the parameters scaled to unit columns (K is ~1, c is ~1e4 nT).
-    d = np.sqrt(np.diag(a))
-    d = np.where(d > 0, d, 1.0)
-    scaled = a / np.outer(d, d)
-    values, vectors = np.linalg.eigh(scaled)
-    condition = float(values[-1] / max(values[0], 1e-300))
-    dof = max(b.shape[0] - len(PARAMETERS), 1)
+
+def _check_bounds(result, lower, upper):
+    """Parameters on (or beyond) the search box make the fit unsuccessful, and say so."""
+    x = result.x
+    at_bound = sorted(set(result.at_bound) | {
+        name for name, v, lo, hi in zip(PARAMETERS, x, lower, upper)
+        if v <= lo or v >= hi or np.isclose(v, lo) or np.isclose(v, hi)})
+    at_bound = [name for name in PARAMETERS if name in at_bound]
+    if at_bound and "at the search bound" not in result.message:
+        result.warnings.append(f"parameters at the search bound: {', '.join(at_bound)} (the "
+                               "minimum lies outside the box the search allows: the data "
+                               "do not fit the model there)")
+        result.message += f"; at the search bound: {', '.join(at_bound)}"
+    result.at_bound = at_bound
+    result.success = bool(result.success and not at_bound and np.all(np.isfinite(x)))
+
+
+def _names(mask):
+    return [name for name, m in zip(PARAMETERS, mask) if m]
+
+
+def _coverage_warnings(dop, determined, held):
     warnings = []
-    cost = best.cost
-    uncertainties = _uncertainties(a, cost, dof)
-    if not np.isfinite(condition) or condition > POORLY_DETERMINED:
-        # Constrained fallback: the directions the coverage cannot see are held to the
-        # isotropic start (K = scale I, c = 0) by a prior that outweighs the data only
-        # along them; everything the data determine is fitted as before.
-        weak_dirs = vectors[:, values < values[-1] / POORLY_DETERMINED]
-        rows = (weak_dirs.T * d) * np.sqrt(values[-1] * PRIOR_WEIGHT)
-        best = _polish(best.x, b, r, lower, upper, prior=(rows, rows @ identity),
-                       solver=solver)
-        nit += best.nfev
-        cost = best.cost
-        data_jac = best.jac[:b.shape[0]]
-        names = [PARAMETERS[i] for i in np.argsort(-np.abs(vectors[:, 0]))[:2]]
-        warnings.append("the attitude coverage hardly determines "
-                        f"{' against '.join(names)} (scaled condition number "
-                        f"{condition:.3g}): constrained fit, that combination held to the "
-                        "isotropic prior; its uncertainty reflects the prior, not the data")
-        uncertainties = _uncertainties(data_jac.T @ data_jac + rows.T @ rows, cost, dof)
+    weak = [n for n, d, h in zip(PARAMETERS, determined, held) if not d and not h]
+    if weak:
+        figures = ", ".join(f"{n} {dop[PARAMETERS.index(n)]:.3g}" for n in weak)
+        warnings.append(f"the attitude coverage leaves {', '.join(weak)} undetermined "
+                        f"(dilution of precision {figures}, above {eiv.UNDETERMINED_DOP:g}: "
+                        "each one's 1-sigma is that many times the noise / sqrt(N)); fitted "
+                        "from the data with their large uncertainties: turn the sensor "
+                        "further about its other axes to determine them")
+    if np.any(held):
+        warnings.append(f"the attitude coverage does not determine {', '.join(_names(held))} "
+                        "at all (a level flight never turns that axis against the field): "
+                        "held to the isotropic prior, no uncertainty given")
+    return warnings
+
+
+def _fit_eiv(b, r, start, keep, robust, reference_noise):
+    fit = eiv.fit_eiv(b, r, start=start, sigma_r=reference_noise, robust=robust, keep=keep)
+    x = fit.x
+    k, c = _pso.unpack(x)
+    sd = np.sqrt(np.clip(np.diag(fit.covariance), 0, None))
+    sd = np.where(fit.held, np.inf, sd)
+    e, _ = eiv.residuals(x, b, r)
+    kept = fit.keep
+    before = np.linalg.norm(b[kept], axis=1) - r[kept]
+    cost = float(e[kept] @ e[kept])
+    warnings = _coverage_warnings(fit.dop, fit.determined, fit.held)
+    message = ("converged: adjusted least squares (errors in variables)" if fit.converged
+               else "not converged: the adjusted least squares reached its iteration limit")
+    if not fit.converged:
+        warnings.append(f"the errors-in-variables fit did not converge in {fit.nit} "
+                        "iterations")
+    return ScalarResult(
+        K=k, c=c, cost=cost, rms=float(np.sqrt(cost / kept.sum())),
+        rms_before=float(np.sqrt(np.mean(before ** 2))), success=fit.converged,
+        message=message, nit=fit.nit, x=x, uncertainties=sd,
+        condition=float(np.max(fit.dop) / max(np.min(fit.dop), 1e-300)),
+        warnings=warnings, status=1 if fit.converged else 0, solver="eiv",
+        at_bound=[], dop=fit.dop, determined=fit.determined, held=fit.held,
+        kept=kept, robust_cut_nT=fit.scale_cut,
+        noise={"magnetometer_nT": fit.sigma_m, "reference_nT": fit.sigma_r},
+        covariance=fit.covariance)
+
+
+def _robust_keep(e, allowed):
+    """Talwar's loss as a mask: samples within ``eiv.ROBUST_K`` robust standard
+    deviations of the median residual; and the cut-off (nT)."""
+    inside = e[allowed]
+    centre = float(np.median(inside))
+    spread = 1.4826 * float(np.median(np.abs(inside - centre)))
+    if spread <= 0:
+        return allowed.copy(), np.inf
+    cut = eiv.ROBUST_K * spread
+    return allowed & (np.abs(e - centre) <= cut), cut
+
+
+def _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver, reference_noise):
+    allowed = np.ones(len(b), bool) if keep is None else keep.copy()
+    identity = np.array([scale, 0, 0, scale, 0, scale, 0, 0, 0], dtype=float)
+    starts = [identity] if start is None else [start, identity]
+    kept = allowed.copy()
+    cut = np.inf
+    nit = 0
+    for _ in range(eiv.MAX_ROUNDS):
+        bk, rk = b[kept], r[kept]
+        # Polish every start and keep the best: a swarm can settle against the box in a
+        # poorly determined direction, where the identity start walks straight to it.
+        polished = [_polish(p, bk, rk, lower, upper, solver=solver) for p in starts]
+        best = min(polished, key=lambda p: p.cost if np.isfinite(p.cost) else np.inf)
+        nit += sum(p.nfev for p in polished)
+        best, fallback, nit = _constrained(best, bk, rk, lower, upper, identity, solver, nit)
+        e, _ = eiv.residuals(best.x, b, r)
+        new_kept, cut = _robust_keep(e, allowed) if robust else (allowed, np.inf)
+        if np.array_equal(new_kept, kept):
+            break
+        kept = new_kept
+        starts = [best.x]
+    bk, rk = b[kept], r[kept]
     x = best.x
-    at_bound = [name for name, v, lo, hi, act in zip(PARAMETERS, x, lower, upper, best.active)
-                if act or np.isclose(v, lo) or np.isclose(v, hi)]
+    e, u = eiv.residuals(x, bk, rk)
+    grad = eiv._field_gradient(x, bk, u)
+    dop = eiv.dilution(grad, float(np.median(rk)))
+    held = np.zeros(9, bool) if fallback is None else fallback
+    determined = (dop <= eiv.UNDETERMINED_DOP) & ~held
+    dof = max(bk.shape[0] - len(PARAMETERS), 1)
+    data_jac = best.jac[:bk.shape[0]]
+    uncertainties = _uncertainties(data_jac.T @ data_jac, best.cost, dof)
+    uncertainties = np.where(held, np.inf, uncertainties)
+    warnings = _coverage_warnings(dop, determined, held)
     converged = best.status > 0
     message = STATUS_MESSAGES.get(best.status, f"status {best.status}")
     if not converged:
         warnings.append(f"the least-squares polish ({best.solver}) did not converge: "
                         f"{message} after {best.nfev} evaluations")
-    if at_bound:
-        warnings.append(f"parameters at the search bound: {', '.join(at_bound)} (the "
-                        "minimum lies outside the box the search allows: the data do not "
-                        "fit the model there)")
-        message += f"; at the search bound: {', '.join(at_bound)}"
+    at_bound = [name for name, act in zip(PARAMETERS, best.active) if act]
     k, c = _pso.unpack(x)
-    before = np.linalg.norm(b, axis=1) - r
-    success = bool(converged and not at_bound and np.all(np.isfinite(x)))
+    before = np.linalg.norm(bk, axis=1) - rk
+    sigma_r = eiv.reference_noise(rk) if reference_noise is None else reference_noise
+    sigma = float(np.sqrt(max(best.cost / dof - sigma_r ** 2, 0.0)))
     return ScalarResult(
-        K=k, c=c, cost=cost, rms=float(np.sqrt(cost / b.shape[0])),
-        rms_before=float(np.sqrt(np.mean(before ** 2))), success=success,
-        message=message, nit=nit, x=x, uncertainties=uncertainties, condition=condition,
-        warnings=warnings, status=best.status, solver=best.solver, at_bound=at_bound)
+        K=k, c=c, cost=best.cost, rms=float(np.sqrt(best.cost / bk.shape[0])),
+        rms_before=float(np.sqrt(np.mean(before ** 2))), success=converged,
+        message=message, nit=nit, x=x, uncertainties=uncertainties,
+        condition=float(np.max(dop) / max(np.min(dop), 1e-300)), warnings=warnings,
+        status=best.status, solver=best.solver, at_bound=at_bound, dop=dop,
+        determined=determined, held=held, kept=kept, robust_cut_nT=cut,
+        noise={"magnetometer_nT": sigma, "reference_nT": sigma_r},
+        covariance=None)
+
+
+def _constrained(best, b, r, lower, upper, identity, solver, nit):
+    """The constrained fallback of the paper objective: the directions the coverage
+    cannot see (scaled condition above :data:`POORLY_DETERMINED`) are held to the
+    isotropic start by a prior that outweighs the data only along them. Returns the polish,
+    the parameters held (bool per parameter, or None) and the evaluations so far."""
+    a = best.jac.T @ best.jac
+    d = np.sqrt(np.diag(a))
+    d = np.where(d > 0, d, 1.0)
+    values, vectors = np.linalg.eigh(a / np.outer(d, d))
+    condition = float(values[-1] / max(values[0], 1e-300))
+    if np.isfinite(condition) and condition <= POORLY_DETERMINED:
+        return best, None, nit
+    weak = vectors[:, values < values[-1] / POORLY_DETERMINED]
+    rows = (weak.T * d) * np.sqrt(values[-1] * PRIOR_WEIGHT)
+    best = _polish(best.x, b, r, lower, upper, prior=(rows, rows @ identity), solver=solver)
+    held = np.max(np.abs(weak), axis=1) > eiv.HELD_LOADING
+    return best, held, nit + best.nfev
 
 
 def _uncertainties(a, cost, dof):

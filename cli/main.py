@@ -342,7 +342,7 @@ def _cmd_calibrate(args):
     _progress(f"[1/3] reading {card}")
     try:
         run = calibrate_card(card, ref=args.ref, method=args.method, seed=args.seed,
-                             attitude=args.attitude)
+                             attitude=args.attitude, objective=args.objective)
     except (CardError, CalibrationError) as error:
         raise CliError(str(error)) from None
     _progress(f"[2/3] {run.log_name}: {len(run.b)} samples calibrated ({run.method}, "
@@ -498,6 +498,11 @@ def _parser():
     calibrate.add_argument("--method", choices=("pso", "lm", "ellipsoid"), default="pso",
                            help="PSO then LM, LM alone, or an ellipsoid fit "
                                 "(default: %(default)s)")
+    calibrate.add_argument("--objective", choices=("eiv", "paper"), default="eiv",
+                           help="the scalar fit's objective: eiv (errors in variables: "
+                                "unbiased when the magnetometer is noisy) or paper (the "
+                                "paper's sum of squared total-field errors) (default: "
+                                "%(default)s)")
     calibrate.add_argument("--seed", type=_int_in(0, SEED_MAX), default=0,
                            help=f"PSO seed, 0 to {SEED_MAX} (default: 0)")
     calibrate.add_argument("--attitude", metavar="CSV",

@@ -315,14 +315,21 @@ def test_doubtful_results_say_why_in_the_report(flight, tmp_path):
     assert any("cesium readings outside" in (text or "") for text in items)
 
 
-def test_fit_status_is_in_the_report(flight, tmp_path, monkeypatch):
-    from maglog.calib import scalar
-    monkeypatch.setattr(scalar, "MAX_NFEV_PER_PARAMETER", 0.2)
-    status, _, err = calibrate_log(tmp_path, flight.log(), "--method", "lm")
+@pytest.mark.parametrize("objective,limit,message", [
+    ("paper", "MAX_NFEV_PER_PARAMETER", "not converged: stopped at the evaluation limit"),
+    ("eiv", "MAX_ITERATIONS", "not converged: the adjusted least squares reached its "
+                              "iteration limit")])
+def test_fit_status_is_in_the_report(flight, tmp_path, monkeypatch, objective, limit, message):
+    from maglog.calib import eiv, scalar
+    monkeypatch.setattr(scalar if objective == "paper" else eiv, limit, 0.2 if
+                        objective == "paper" else 1)
+    status, _, err = calibrate_log(tmp_path, flight.log(), "--method", "lm", "--objective",
+                                   objective)
     assert status == 0, err
     summary = strict_json(tmp_path / "report" / "parameters.json")
     assert summary["success"] is False and summary["status"] == 0
-    assert summary["message"].startswith("not converged: stopped at the evaluation limit")
+    assert summary["objective"] == objective
+    assert summary["message"].startswith(message)
     assert any("did not converge" in w for w in summary["warnings"])
     assert "- fit: not converged" in (tmp_path / "report" / "report.md").read_text()
 

@@ -1,0 +1,531 @@
+"""The scalar model fitted with errors in variables: unbiased when the magnetometer is noisy.
+
+The paper's objective, ``sum (|K b_i - c| - r_i)^2``, treats the samples ``b_i`` as exact and
+only the reference ``r_i`` as noisy. The magnetometer's own noise then biases the fit by a
+term of order sigma^2, and where the attitude coverage determines a combination poorly (a
+UAV's tilt of +-30 deg hardly moves the vertical axis) the bias is multiplied by the
+inverse of that weak direction: with paper A's Table 1 and 100 nT of noise, c3 came out
+100 nT off, whatever the number of samples.
+
+This module fits the same nine parameters by adjusted least squares (Kukush, Markovsky and
+Van Huffel 2004): the squared model ``|K b - c|^2 - r^2`` is linear in the monomials of
+``b`` up to degree two, so the objective is a quadratic form in an 11x11 moment matrix built
+from power sums of the samples up to degree four (the sufficient statistics: an
+evaluation costs the same for 100 samples or a day's flight). Each power sum is replaced by
+its unbiased counterpart under Gaussian noise of variance sigma_m^2 per axis (Hermite
+polynomials: E[x~^2 - s^2] = x^2, E[x~^4 - 6 s^2 x~^2 + 3 s^4] = x^4, ...), and the
+reference's square by ``r~^2 - sigma_r^2``; the minimiser of the corrected objective is
+consistent. sigma_m is estimated from the fit's own residual (the residual's variance is
+sigma_m^2 |K^T n|^2 + sigma_r^2, with n the calibrated field's direction), sigma_r is given
+or estimated from the reference's own second differences.
+
+Robust loss: Talwar's (quadratic within ``ROBUST_K`` robust standard deviations of the
+residual, constant outside), solved by reweighting with weights 0 or 1: a sample far off the
+fit does not move it, and the inliers keep weight one so the bias correction stays exact.
+
+Uncertainties: the sandwich estimator (the spread of the per-sample estimating equations
+between the curvature), which holds when the noise is not what the model assumes.
+Observability: the dilution of precision of each parameter (its standard deviation in nT,
+K's entries times the field, per nT of noise per square root of the number of samples), a
+property of the attitude coverage alone; a parameter whose dilution exceeds
+``UNDETERMINED_DOP`` is reported as undetermined and held to the isotropic prior.
+
+Ref: A. Kukush, I. Markovsky and S. Van Huffel, "Consistent least squares fitting of
+     ellipsoids", Numerische Mathematik 98 (2004) 177-194.
+     R. A. Maronna, R. D. Martin and V. J. Yohai, "Robust Statistics", Wiley 2006 (Talwar's
+     loss, the MAD scale).
+"""
+
+import itertools
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+
+__all__ = ["Moments", "moments", "theta", "theta_jacobian", "objective", "Fit", "fit_eiv",
+           "residuals", "dilution", "EXPONENTS", "ROBUST_K", "UNDETERMINED_DOP"]
+
+#: Exponents (x, y, z) of the monomials of b in the squared model, in order:
+#: x^2, y^2, z^2, xy, xz, yz, x, y, z, 1 (then r^2 as the eleventh column).
+EXPONENTS = ((2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1),
+             (1, 0, 0), (0, 1, 0), (0, 0, 1), (0, 0, 0))
+#: Power sums kept: every exponent triple of total degree four or less (35).
+_POWERS = tuple(e for e in itertools.product(range(5), repeat=3) if sum(e) <= 4)
+_POWER_INDEX = {e: i for i, e in enumerate(_POWERS)}
+#: Probabilists' Hermite polynomials with variance s^2, as {power of x: coefficient of
+#: s^(n - power)}: E[He_n(x + w)] = x^n for w ~ N(0, s^2).
+_HERMITE = ({0: 1.0}, {1: 1.0}, {2: 1.0, 0: -1.0}, {3: 1.0, 1: -3.0},
+            {4: 1.0, 2: -6.0, 0: 3.0})
+#: Talwar's cut-off, in robust standard deviations (1.4826 MAD) of the residual: Gaussian
+#: noise passes it with probability 1 - 6e-7, so the inliers' weights are one.
+ROBUST_K = 5.0
+#: Reweighting rounds at most (each one refits on the kept samples).
+MAX_ROUNDS = 12
+#: Levenberg-Marquardt iterations at most per fit of the moment problem.
+MAX_ITERATIONS = 50
+#: A parameter whose dilution of precision exceeds this is reported as undetermined by the
+#: coverage: its standard deviation exceeds this many times the noise divided by sqrt(N)
+#: (a full-sphere tumble gives 1.7-4 for every parameter; a +-30 deg UAV pattern ~70 for
+#: k33 and c3, the vertical axis it hardly turns; a level turn 10^4 and more). It is still
+#: fitted from the data, with its (large) uncertainty.
+UNDETERMINED_DOP = 30.0
+#: A direction whose dilution exceeds this is not fitted at all: the data cannot tell it
+#: from the trivial solution (K -> 0, |c| = r), so a prior holds it to the isotropic start.
+DEGENERATE_DOP = 1000.0
+#: Strength of that prior per sample, in the scaled information's units (a well-determined
+#: direction has ~0.1-1).
+PRIOR_STRENGTH = 1.0
+#: A parameter whose change along a held direction exceeds this share is held too (no
+#: uncertainty is reported for it).
+HELD_LOADING = 0.05
+
+
+@dataclass
+class Moments:
+    """Power sums of the kept samples: ``P[i]`` = sum x^a y^b z^c for ``_POWERS[i]``,
+    ``Pr[j]`` = sum monomial_j * r^2 for the ten model monomials, ``r4`` = sum r^4, and the
+    count. Samples and reference are centred and scaled first (``shift``, ``scale``) so the
+    sums keep their precision."""
+    P: np.ndarray
+    Pr: np.ndarray
+    r2: float
+    r4: float
+    count: int
+    shift: np.ndarray
+    scale: float
+
+    def matrix(self, sigma_m=0.0, sigma_r=0.0):
+        """The 11x11 moment matrix, corrected for noise of ``sigma_m`` per axis (nT) in the
+        samples and ``sigma_r`` (nT) in the reference; unbiased for the noise-free one."""
+        s2 = (sigma_m / self.scale) ** 2
+        q2 = (sigma_r / self.scale) ** 2
+
+        def corrected(e):
+            total = 0.0
+            for px, cx in _HERMITE[e[0]].items():
+                for py, cy in _HERMITE[e[1]].items():
+                    for pz, cz in _HERMITE[e[2]].items():
+                        order = (e[0] - px) + (e[1] - py) + (e[2] - pz)
+                        total += cx * cy * cz * s2 ** (order // 2) * \
+                            self.P[_POWER_INDEX[(px, py, pz)]]
+            return total
+
+        s = np.empty((11, 11))
+        for j, ej in enumerate(EXPONENTS):
+            for k in range(j, 10):
+                s[j, k] = s[k, j] = corrected(tuple(a + b for a, b in zip(ej, EXPONENTS[k])))
+            # sum m_j (r^2 - q^2): the reference's noise is independent of the samples'.
+            s[j, 10] = s[10, j] = self._corrected_r(j, s2) - q2 * corrected(ej)
+        s[10, 10] = self.r4 - 6 * q2 * self.r2 + 3 * q2 * q2 * self.count
+        return s
+
+    def _corrected_r(self, j, s2):
+        e = EXPONENTS[j]
+        # m_j has degree <= 2 and at most one squared axis: He_2 = x^2 - s^2.
+        if sum(e) == 2 and max(e) == 2:
+            return self.Pr[j] - s2 * self.Pr[9]
+        return self.Pr[j]
+
+
+_EXPONENT_TABLE = np.array(_POWERS, dtype=np.int64)
+_MONOMIAL_TABLE = np.array(EXPONENTS, dtype=np.int64)
+
+
+@numba.njit(cache=True)
+def _power_sums(b, r, keep, shift, scale, table, monomials):
+    """One pass over the samples: the power sums of the table's exponents, the model
+    monomials times r^2, sum r^2, sum r^4 and the count (all of centred, scaled values)."""
+    sums = np.zeros(table.shape[0])
+    with_r = np.zeros(monomials.shape[0])
+    r2_sum = 0.0
+    r4_sum = 0.0
+    count = 0
+    px = np.empty(5)
+    py = np.empty(5)
+    pz = np.empty(5)
+    for i in range(b.shape[0]):
+        if not keep[i]:
+            continue
+        x = (b[i, 0] - shift[0]) / scale
+        y = (b[i, 1] - shift[1]) / scale
+        z = (b[i, 2] - shift[2]) / scale
+        rr = r[i] / scale
+        rr *= rr
+        px[0] = py[0] = pz[0] = 1.0
+        for p in range(1, 5):
+            px[p] = px[p - 1] * x
+            py[p] = py[p - 1] * y
+            pz[p] = pz[p - 1] * z
+        for k in range(table.shape[0]):
+            sums[k] += px[table[k, 0]] * py[table[k, 1]] * pz[table[k, 2]]
+        for k in range(monomials.shape[0]):
+            with_r[k] += px[monomials[k, 0]] * py[monomials[k, 1]] * pz[monomials[k, 2]] * rr
+        r2_sum += rr
+        r4_sum += rr * rr
+        count += 1
+    return sums, with_r, r2_sum, r4_sum, count
+
+
+def moments(b, r, keep=None, *, shift=None, scale=None):
+    """The power sums of samples ``b`` (N, 3) and reference ``r`` (N,) over ``keep``, one
+    compiled pass (about 10 ms for a one-hour flight at 50 Hz)."""
+    b = np.ascontiguousarray(b, dtype=np.float64)
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    keep = np.ones(len(b), dtype=np.bool_) if keep is None else np.ascontiguousarray(
+        keep, dtype=np.bool_)
+    shift = np.zeros(3) if shift is None else np.asarray(shift, dtype=np.float64)
+    if scale is None:
+        scale = float(np.median(r[keep]))
+    sums, with_r, r2, r4, count = _power_sums(b, r, keep, shift, float(scale),
+                                              _EXPONENT_TABLE, _MONOMIAL_TABLE)
+    return Moments(P=sums, Pr=with_r, r2=float(r2), r4=float(r4), count=int(count),
+                   shift=shift, scale=float(scale))
+
+
+@numba.njit(cache=True)
+def _residual_kernel(p, b, r, u, e):
+    for i in range(b.shape[0]):
+        x, y, z = b[i, 0], b[i, 1], b[i, 2]
+        u0 = p[0] * x + p[1] * y + p[2] * z - p[6]
+        u1 = p[3] * y + p[4] * z - p[7]
+        u2 = p[5] * z - p[8]
+        u[i, 0], u[i, 1], u[i, 2] = u0, u1, u2
+        e[i] = np.sqrt(u0 * u0 + u1 * u1 + u2 * u2) - r[i]
+
+
+def theta(p):
+    """Coefficients of the squared model on the monomials (ten) for parameters ``p`` (9):
+    |K b - c|^2 = theta . monomials(b)."""
+    k11, k12, k13, k22, k23, k33, c1, c2, c3 = p
+    g1 = k11 * c1
+    g2 = k12 * c1 + k22 * c2
+    g3 = k13 * c1 + k23 * c2 + k33 * c3
+    return np.array([k11 * k11, k12 * k12 + k22 * k22, k13 * k13 + k23 * k23 + k33 * k33,
+                     2 * k11 * k12, 2 * k11 * k13, 2 * (k12 * k13 + k22 * k23),
+                     -2 * g1, -2 * g2, -2 * g3, c1 * c1 + c2 * c2 + c3 * c3])
+
+
+def theta_jacobian(p):
+    """d theta / d p (10, 9)."""
+    k11, k12, k13, k22, k23, k33, c1, c2, c3 = p
+    j = np.zeros((10, 9))
+    j[0, 0] = 2 * k11
+    j[1, 1], j[1, 3] = 2 * k12, 2 * k22
+    j[2, 2], j[2, 4], j[2, 5] = 2 * k13, 2 * k23, 2 * k33
+    j[3, 0], j[3, 1] = 2 * k12, 2 * k11
+    j[4, 0], j[4, 2] = 2 * k13, 2 * k11
+    j[5, 1], j[5, 2], j[5, 3], j[5, 4] = 2 * k13, 2 * k12, 2 * k23, 2 * k22
+    j[6, 0], j[6, 6] = -2 * c1, -2 * k11
+    j[7, 1], j[7, 3], j[7, 6], j[7, 7] = -2 * c1, -2 * c2, -2 * k12, -2 * k22
+    j[8, 2], j[8, 4], j[8, 5] = -2 * c1, -2 * c2, -2 * c3
+    j[8, 6], j[8, 7], j[8, 8] = -2 * k13, -2 * k23, -2 * k33
+    j[9, 6:9] = 2 * np.array([c1, c2, c3])
+    return j
+
+
+def objective(p, s):
+    """The algebraic objective: sum (|K b - c|^2 - r^2)^2 from the moment matrix ``s``."""
+    v = np.append(theta(p), -1.0)
+    return float(v @ s @ v)
+
+
+def _to_unit(p, shift, scale):
+    """Parameters for samples in nT -> parameters for the centred, scaled samples."""
+    k = np.array([[p[0], p[1], p[2]], [0, p[3], p[4]], [0, 0, p[5]]])
+    c = (np.asarray(p[6:9]) - k @ shift) / scale
+    return np.array([p[0], p[1], p[2], p[3], p[4], p[5], *c])
+
+
+def _from_unit(q, shift, scale):
+    k = np.array([[q[0], q[1], q[2]], [0, q[3], q[4]], [0, 0, q[5]]])
+    c = np.asarray(q[6:9]) * scale + k @ shift
+    return np.array([q[0], q[1], q[2], q[3], q[4], q[5], *c])
+
+
+def _linear_start(s, scale_guess):
+    """Parameters from the linear solution of the moment problem (ten free coefficients,
+    the relation between them not enforced); the isotropic start when it is no ellipsoid."""
+    a, g = s[:10, :10], s[:10, 10]
+    try:
+        t = np.linalg.lstsq(a, g, rcond=1e-14)[0]
+        m = np.array([[t[0], t[3] / 2, t[4] / 2], [t[3] / 2, t[1], t[5] / 2],
+                      [t[4] / 2, t[5] / 2, t[2]]])
+        k = np.linalg.cholesky(m).T                 # M = K^T K, K upper triangular
+        c = np.linalg.solve(k.T, -t[6:9] / 2)       # K^T c = -theta[6:9] / 2
+        return np.array([k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2], k[2, 2], *c])
+    except np.linalg.LinAlgError:
+        return np.array([scale_guess, 0, 0, scale_guess, 0, scale_guess, 0, 0, 0])
+
+
+def _root(s):
+    """L with L^T L = s (s clipped to positive semi-definite)."""
+    values, vectors = np.linalg.eigh((s + s.T) / 2)
+    return np.sqrt(np.clip(values, 0, None))[:, None] * vectors.T
+
+
+def _gauss_newton(q, root, prior=None, *, iterations=None):
+    """Levenberg-Marquardt on the 11 residuals ``root @ [theta(q), -1]`` (plus prior rows
+    ``A q - target``). Returns (q, iterations, converged)."""
+    def residual(x):
+        e = root @ np.append(theta(x), -1.0)
+        return e if prior is None else np.concatenate([e, prior[0] @ x - prior[1]])
+
+    def jacobian(x):
+        j = root[:, :10] @ theta_jacobian(x)
+        return j if prior is None else np.vstack([j, prior[0]])
+
+    iterations = MAX_ITERATIONS if iterations is None else iterations
+    e = residual(q)
+    cost = e @ e
+    damping = 1e-6
+    for it in range(1, iterations + 1):
+        j = jacobian(q)
+        a = j.T @ j
+        g = j.T @ e
+        d = np.diag(a).copy()
+        d[d <= 0] = 1.0
+        while True:
+            try:
+                step = np.linalg.solve(a + damping * np.diag(d), -g)
+            except np.linalg.LinAlgError:
+                step = np.zeros_like(q)
+            trial = q + step
+            e_trial = residual(trial)
+            c_trial = e_trial @ e_trial
+            if np.isfinite(c_trial) and c_trial <= cost:
+                break
+            damping *= 10
+            if damping > 1e12:
+                return q, it, True          # no descent left: at the minimum
+        q, e, change = trial, e_trial, cost - c_trial
+        cost = c_trial
+        damping = max(damping / 10, 1e-12)
+        if change <= 1e-15 * max(cost, 1e-300) or np.max(np.abs(step)) <= 1e-13 * (
+                1 + np.max(np.abs(q))):
+            return q, it, True
+    return q, iterations, False
+
+
+@numba.njit(cache=True)
+def _talwar(p, u, e, allowed, centre, cut, kept):
+    """Marks the allowed samples within ``cut`` of ``centre`` in ``kept``; returns their
+    count, their sum of squared residuals and their sum of |K^T n|^2 (n the calibrated
+    field's direction: how the sensor's noise reaches the residual)."""
+    count = 0
+    square_sum = 0.0
+    gain_sum = 0.0
+    for i in range(e.shape[0]):
+        kept[i] = allowed[i] and abs(e[i] - centre) <= cut
+        if not kept[i]:
+            continue
+        norm = np.sqrt(u[i, 0] ** 2 + u[i, 1] ** 2 + u[i, 2] ** 2)
+        n0, n1, n2 = u[i, 0] / norm, u[i, 1] / norm, u[i, 2] / norm
+        g0 = p[0] * n0
+        g1 = p[1] * n0 + p[3] * n1
+        g2 = p[2] * n0 + p[4] * n1 + p[5] * n2
+        gain_sum += g0 * g0 + g1 * g1 + g2 * g2
+        square_sum += e[i] * e[i]
+        count += 1
+    return count, square_sum, gain_sum
+
+
+def residuals(p, b, r):
+    """|K b - c| - r per sample, and the calibrated vectors K b - c."""
+    b = np.ascontiguousarray(b, dtype=np.float64)
+    r = np.broadcast_to(np.asarray(r, dtype=np.float64), (len(b),))
+    u = np.empty_like(b)
+    e = np.empty(len(b))
+    _residual_kernel(np.asarray(p, dtype=np.float64), b, np.ascontiguousarray(r), u, e)
+    return e, u
+
+
+def _field_gradient(p, b, u):
+    """d|K b - c| / dp per sample (N, 9)."""
+    d = u / np.linalg.norm(u, axis=1)[:, None]
+    x, y, z = b[:, 0], b[:, 1], b[:, 2]
+    return np.column_stack([d[:, 0] * x, d[:, 0] * y, d[:, 0] * z, d[:, 1] * y,
+                            d[:, 1] * z, d[:, 2] * z, -d[:, 0], -d[:, 1], -d[:, 2]])
+
+
+def dilution(gradient, field_nt):
+    """Per-parameter dilution of precision from the field's gradient (N, 9): each
+    parameter's standard deviation in nT (K's entries times ``field_nt``) per nT of noise
+    per 1/sqrt(N); infinity where the information is singular."""
+    n = gradient.shape[0]
+    info = gradient.T @ gradient / n
+    units = np.array([field_nt] * 6 + [1.0] * 3)
+    try:
+        cov = np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        return np.full(9, np.inf)
+    diag = np.diag(cov)
+    return np.where(diag > 0, np.sqrt(np.abs(diag)) * units, np.inf)
+
+
+@dataclass
+class Fit:
+    """What :func:`fit_eiv` found (parameters in nT units, as ``calibrate_scalar``'s)."""
+    x: np.ndarray
+    keep: np.ndarray            # samples the robust loss kept
+    sigma_m: float              # the magnetometer's noise per axis, estimated (nT)
+    sigma_r: float              # the reference's noise, given or estimated (nT)
+    covariance: np.ndarray      # sandwich, 9x9 (parameters as x)
+    dop: np.ndarray             # dilution of precision per parameter
+    determined: np.ndarray      # bool per parameter
+    held: np.ndarray            # bool per parameter: moved along a direction the prior holds
+    weak: np.ndarray            # (9, m) the directions held to the prior (scaled parameters)
+    rounds: int                 # reweighting rounds
+    nit: int                    # Gauss-Newton iterations in all
+    converged: bool
+    scale_cut: float            # the robust loss's cut-off (nT)
+    warnings: list = field(default_factory=list)
+
+
+def reference_noise(r):
+    """The reference's own noise (nT), from the MAD of its second differences: a total
+    field along a flight is smooth from one sample to the next, its sensor's noise is not.
+    (A reference interpolated between readings is smoother than its readings: this gives a
+    lower bound, which is the conservative side for the correction.)"""
+    r = np.asarray(r, float)
+    if len(r) < 5:
+        return 0.0
+    d2 = np.diff(r, 2)
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+def _plausible(q, scale_guess):
+    """A start worth polishing: K's diagonal within the calibration's range of the data's
+    scale, small off-diagonals, the centre within half the field."""
+    diag = np.array([q[0], q[3], q[5]]) / scale_guess
+    off = np.array([q[1], q[2], q[4]]) / scale_guess
+    return bool(np.all(np.isfinite(q)) and np.all((diag > 0.5) & (diag < 2.0))
+                and np.all(np.abs(off) < 0.5) and np.linalg.norm(q[6:9]) < 0.5)
+
+
+def _weak_prior(root, q, target, count):
+    """Prior rows holding the weakest directions of the moment problem at ``q`` to
+    ``target`` (None when none is weak). Returns (directions (9, m), rows, target) with m the
+    number of eigenvalues of the scaled information (per sample, per unit noise) whose
+    dilution exceeds :data:`DEGENERATE_DOP`."""
+    j = root[:, :10] @ theta_jacobian(q)
+    info = j.T @ j / (4.0 * count)       # per sample, parameters and noise in field units
+    values, vectors = np.linalg.eigh(info)
+    weak = values < 1.0 / DEGENERATE_DOP ** 2
+    if not np.any(weak):
+        return np.zeros((9, 0)), None
+    directions = vectors[:, weak]
+    # Rows as strong as a well-determined direction, so the prior wins only along them.
+    rows = directions.T * np.sqrt(PRIOR_STRENGTH * 4.0 * count)
+    return directions, (rows, rows @ target)
+
+
+def fit_eiv(b, r, *, start=None, sigma_r=None, robust=True, keep=None, correct=True):
+    """Fit the nine parameters by adjusted least squares with Talwar's robust loss.
+
+    ``start``: parameters to start from (else the linear solution when it is plausible,
+    else the isotropic K = s I, c = 0); ``sigma_r``: the reference's noise (nT; None:
+    :func:`reference_noise`); ``keep``: samples allowed at all (a screening's mask);
+    ``correct`` False gives the uncorrected algebraic fit (the noise taken as zero)."""
+    n = len(b)
+    allowed = np.ones(n, bool) if keep is None else np.asarray(keep, bool).copy()
+    field_nt = float(np.median(r[allowed]))
+    shift = np.mean(b[allowed], axis=0)
+    if sigma_r is None:
+        sigma_r = reference_noise(r[allowed])
+    scale_guess = field_nt / float(np.median(np.linalg.norm(b[allowed], axis=1)))
+    isotropic = np.array([scale_guess, 0, 0, scale_guess, 0, scale_guess, 0, 0, 0])
+    target = _to_unit(isotropic, shift, field_nt)
+    kept = allowed.copy()
+    sigma_m = 0.0
+    nit = 0
+    rounds = 0
+    converged = True
+    cut = np.inf
+    q = None if start is None else _to_unit(np.asarray(start, float), shift, field_nt)
+    directions, prior = np.zeros((9, 0)), None
+    for rounds in range(1, MAX_ROUNDS + 1):
+        mom = moments(b, r, kept, shift=shift, scale=field_nt)
+        s = mom.matrix(sigma_m if correct else 0.0, sigma_r if correct else 0.0)
+        root = _root(s)
+        if rounds == 1:
+            # Every plausible start (the given one, the linear solution, the isotropic
+            # one), polished; the best plausible end wins (the algebraic objective has a
+            # collapsed minimum, K -> 0, that a start far off may slide into).
+            candidates = [target.copy()]
+            linear = _linear_start(s, scale_guess)
+            if _plausible(linear, scale_guess):
+                candidates.insert(0, linear)
+            if q is not None and _plausible(q, scale_guess):
+                candidates.insert(0, q)
+            ends = []
+            for candidate in candidates:
+                directions, prior = _weak_prior(root, candidate, target, mom.count)
+                end, it, ok = _gauss_newton(candidate, root, prior)
+                nit += it
+                cost = objective(end, s)
+                ends.append((not _plausible(end, scale_guess), cost, end, ok))
+            _, _, q, converged = min(ends, key=lambda item: item[:2])
+        # The directions the coverage leaves to the prior, judged where the fit stands.
+        directions, prior = _weak_prior(root, q, target, mom.count)
+        q, it, converged = _gauss_newton(q, root, prior)
+        nit += it
+        x = _from_unit(q, shift, field_nt)
+        e, u = residuals(x, b, r)
+        inside = e[kept]
+        centre = float(np.median(inside))
+        spread = 1.4826 * float(np.median(np.abs(inside - centre)))
+        cut = ROBUST_K * spread if robust and spread > 0 else np.inf
+        # Talwar's loss as a mask, and the magnetometer's noise from the kept residual.
+        new_kept = np.empty(n, dtype=np.bool_)
+        count, square_sum, gain_sum = _talwar(x, u, e, allowed, centre, cut, new_kept)
+        gain = gain_sum / max(count, 1)
+        variance = square_sum / max(count - 9, 1)
+        new_sigma = float(np.sqrt(max(variance - sigma_r ** 2, 0.0) / gain))
+        same_set = np.array_equal(new_kept, kept)
+        stable = same_set and (not correct or abs(new_sigma - sigma_m)
+                               <= 1e-3 * max(new_sigma, 1e-9))
+        kept, sigma_m = new_kept, new_sigma
+        if stable:
+            break
+    x = _from_unit(q, shift, field_nt)
+    e, u = residuals(x, b, r)
+    grad = _field_gradient(x, b[kept], u[kept])
+    dop = dilution(grad, field_nt)
+    held = _held(directions, shift, field_nt)
+    determined = (dop <= UNDETERMINED_DOP) & ~held
+    covariance = _sandwich(b[kept], r[kept], u[kept], grad)
+    return Fit(x=x, keep=kept, sigma_m=sigma_m, sigma_r=sigma_r, covariance=covariance,
+               dop=dop, determined=determined, held=held, weak=directions, rounds=rounds,
+               nit=nit, converged=converged, scale_cut=cut)
+
+
+def _held(directions, shift, field_nt):
+    """Parameters (as reported, c in the sensor's origin) that move along a direction the
+    prior holds."""
+    if directions.shape[1] == 0:
+        return np.zeros(9, bool)
+    # d x / d q: K is the same, c = c_unit * field + K shift.
+    jac = np.eye(9)
+    jac[6:9, 6:9] *= field_nt
+    jac[6, 0:3] = shift
+    jac[7, 3:5] = shift[1:]
+    jac[8, 5] = shift[2]
+    moved = jac @ directions
+    moved /= np.array([1.0] * 6 + [field_nt] * 3)[:, None]
+    return np.max(np.abs(moved), axis=1) > HELD_LOADING
+
+
+def _sandwich(b, r, u, grad):
+    """Covariance of the parameters from the data alone: H^-1 B H^-1, with H the
+    information of the field's gradient and B the spread of the per-sample scores
+    (gradient times residual). Directions the data do not determine come out huge."""
+    e = np.linalg.norm(u, axis=1) - r
+    scores = grad * e[:, None]
+    scores -= scores.mean(axis=0)
+    h = grad.T @ grad
+    try:
+        hinv = np.linalg.inv(h)
+    except np.linalg.LinAlgError:
+        return np.full((9, 9), np.inf)
+    return hinv @ (scores.T @ scores) @ hinv
