@@ -9,6 +9,7 @@ import re
 import numpy as np
 import pytest
 
+from maglog.calib.logparse import parse_log
 from maglog.calib.screen import (EARTH_RANGE_NT, REFERENCE_REASONS, SAMPLE_REASONS,
                                  SPIKE_FLOOR_NT, ScreenResult, screen_reference,
                                  screen_samples)
@@ -143,6 +144,37 @@ def test_the_tens_digit_flip_is_caught_under_10_nT_of_noise_most_of_the_time():
         assert set(out.rejected.tolist()) <= {450}
         caught += out.n_rejected
     assert caught >= 16                         # 89 % over 2,000 seeds
+
+
+def flip_bit(line, column, bit):
+    """``line`` with one bit of the character at ``column`` flipped."""
+    return line[:column] + bytes([line[column] ^ (1 << bit)]) + line[column + 1:]
+
+
+def test_bit_flips_in_a_real_log():
+    """A 90-s log as the logger writes it (the cesium line has no checksum), parsed: one bit
+    flipped in the leading digit of reading 417 (``$ 48395.0xx`` -> ``$ 08395.0xx``), in
+    the tens digit of reading 300 (-> ``48315``) and in the units digit of reading 600
+    (-> ``48391``)."""
+    flight = make_flight(coverage="uav", seconds=90.0, seed=3)
+    lines = flight.log(seed=0).split(b"\r\n")
+    readings = [i for i, line in enumerate(lines) if line.startswith(b"$ ")]
+    assert len(readings) == 900
+    exact = [k for k, i in enumerate(readings) if lines[i].startswith(b"$ 48395.")]
+    near = {target: min(exact, key=lambda k: abs(k - target)) for target in (300, 417, 600)}
+    assert near[417] == 417
+    for target, column, bit, text in ((417, 2, 2, b"$ 08395."), (300, 5, 3, b"$ 48315."),
+                                      (600, 6, 2, b"$ 48391.")):
+        i = readings[near[target]]
+        lines[i] = flip_bit(lines[i], column, bit)
+        assert lines[i].startswith(text)
+    cesium = parse_log(b"\r\n".join(lines)).cesium
+    assert np.all(np.diff(cesium.t) > 0)
+    out = screen_reference(cesium.t, cesium.field)
+    assert out.rejected.tolist() == [near[300], 417]
+    assert out.counts == {"nonfinite": 0, "earth_range": 1, "spike": 1}
+    assert out.examples["earth_range"][0].value == pytest.approx(8395.0, abs=0.1)
+    assert out.examples["spike"][0].value == pytest.approx(48315.0, abs=0.1)
 
 
 def test_non_numbers_in_the_reference_are_counted():
