@@ -515,18 +515,25 @@ _LF = ord("\n")
 _CR = ord("\r")
 
 
-def _byte_set(members: bytes) -> np.ndarray:
-    table = np.zeros(256, dtype=bool)
-    table[list(members)] = True
-    return table
-
-
+#: The byte classes of the forms, each as inclusive byte ranges.
+_DIGIT = (b"09",)
 _BYTE_CLASSES = {
-    ord("d"): _byte_set(b"0123456789"),
-    ord("s"): _byte_set(b"+-"),
-    ord("c"): _byte_set(b" 1"),
-    ord("h"): _byte_set(b"0123456789ABCDEFabcdef"),
+    ord("d"): _DIGIT,
+    ord("s"): (b"++", b"--"),
+    ord("c"): (b"  ", b"11"),
+    ord("h"): (b"09", b"AF", b"af"),
 }
+_UPPER = (b"AZ",)
+_PRINTABLE = (b" ~",)
+
+
+def _in_class(cells: np.ndarray, ranges: tuple[bytes, ...]) -> np.ndarray:
+    """Whether each byte lies in one of the inclusive ``ranges``."""
+    low, high = ranges[0]
+    inside = (cells - np.uint8(low)) <= high - low  # bytes below ``low`` wrap round to 255
+    for low, high in ranges[1:]:
+        inside |= (cells - np.uint8(low)) <= high - low
+    return inside
 _HEX_VALUE = np.zeros(256, dtype=np.int64)
 _HEX_VALUE[list(b"0123456789")] = range(10)
 _HEX_VALUE[list(b"ABCDEF")] = range(10, 16)
@@ -545,11 +552,11 @@ def _rows_in_form(
     rows = np.lib.stride_tricks.sliding_window_view(data, len(form))[starts[lines]]
     ok = np.ones(len(lines), dtype=bool)
     literal = np.ones(len(form), dtype=bool)
-    for byte_class, members in _BYTE_CLASSES.items():
+    for byte_class, ranges in _BYTE_CLASSES.items():
         columns = np.flatnonzero(template == byte_class)
         literal[columns] = False
         if len(columns):
-            ok &= members[rows[:, columns]].all(axis=1)
+            ok &= _in_class(rows[:, columns], ranges).all(axis=1)
     ok &= (rows[:, literal] == template[literal]).all(axis=1)
     return lines[ok], rows[ok]
 
@@ -599,8 +606,6 @@ def _bulk_cesium(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ..
 _BULK_FIELD_WIDTH = 16
 _BULK_DIGITS = 15
 _POWERS_OF_TEN = np.array([float(10**k) for k in range(_BULK_FIELD_WIDTH + 1)])
-_UPPER = _byte_set(b"ABCDEFGHIJKLMNOPQRSTUVWXYZ")
-_PRINTABLE = _byte_set(bytes(range(0x20, 0x7F)))
 
 
 def _gather(data: np.ndarray, starts: np.ndarray, length: np.ndarray):
@@ -620,7 +625,7 @@ def _nmea_fields(data, starts, length, sentence: bytes, field_count: int):
     field starts and stops in ``chunk`` (column ``k - 1`` for field ``k``)."""
     lines = np.flatnonzero(length >= len(b"$ccGGA,*hh"))
     at = starts[lines]
-    ok = (data[at] == ord("$")) & _UPPER[data[at + 1]] & _UPPER[data[at + 2]]
+    ok = (data[at] == ord("$")) & _in_class(data[at + 1], _UPPER) & _in_class(data[at + 2], _UPPER)
     for column, byte in enumerate(sentence + b",", start=3):
         ok &= data[at + column] == byte
     lines = lines[ok & (data[at + length[lines] - 3] == ord("*"))]
@@ -632,8 +637,8 @@ def _nmea_fields(data, starts, length, sentence: bytes, field_count: int):
         return np.bincount(row[flags[: len(row)]], minlength=len(lines))
 
     hex_digit = _BYTE_CLASSES[ord("h")]
-    ok = hex_digit[chunk[star + 1]] & hex_digit[chunk[star + 2]]
-    ok &= (per_line(~_PRINTABLE[chunk]) == 0) & (per_line(chunk == ord("$")) == 1)
+    ok = _in_class(chunk[star + 1], hex_digit) & _in_class(chunk[star + 2], hex_digit)
+    ok &= (per_line(~_in_class(chunk, _PRINTABLE)) == 0) & (per_line(chunk == ord("$")) == 1)
     ok &= (per_line(chunk == ord("*")) == 1) & (per_line(chunk == ord(",")) == field_count - 1)
     prefix = np.zeros(len(chunk) + 1, dtype=np.uint8)
     np.bitwise_xor.accumulate(chunk, out=prefix[1:])
@@ -652,7 +657,7 @@ def _plain_number(chunk: np.ndarray, first: np.ndarray, stop: np.ndarray):
     columns = np.arange(_BULK_FIELD_WIDTH)
     cells = chunk[first[:, None] + columns]
     inside = columns < width[:, None]
-    digit = inside & (cells >= ord("0")) & (cells <= ord("9"))
+    digit = inside & _in_class(cells, _DIGIT)
     point = inside & (cells == ord("."))
     mantissa = np.zeros(len(first), dtype=np.int64)
     for column in range(_BULK_FIELD_WIDTH):
