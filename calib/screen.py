@@ -160,7 +160,7 @@ class ScreenResult:
         return self.n - self.n_kept
 
     @property
-    def rejected(self):
+    def rejected_indices(self):
         """Indices of the rejected readings."""
         return np.flatnonzero(~self.keep)
 
@@ -178,10 +178,13 @@ class ScreenResult:
         return line
 
     def as_dict(self):
-        """For JSON: the counts, examples and settings (not the mask, as long as the log)."""
+        """For JSON: the counts, examples (a value that is not a number as None) and settings;
+        not the mask, which is as long as the log."""
         return {"what": self.what, "n": self.n, "kept": self.n_kept,
                 "rejected": self.n_rejected, "counts": dict(self.counts),
-                "examples": {reason: [ex._asdict() for ex in exs]
+                "examples": {reason: [{"index": ex.index,
+                                       "value": ex.value if math.isfinite(ex.value) else None,
+                                       "why": ex.why} for ex in exs]
                              for reason, exs in self.examples.items()},
                 "untested": self.untested, "limits": dict(self.limits),
                 "summary": self.summary()}
@@ -231,8 +234,8 @@ def screen_samples(t, b, r=None, *, scale_range=SCALE_RANGE, jump_fraction=JUMP_
     """Screen magnetometer samples ``b`` ((N, 3), nT) at times ``t`` (s, finite), with the
     reference total field ``r`` at each sample if known (nT; NaN where there is none):
     reject those with a component not finite, a magnitude outside ``scale_range`` of the
-    data's scale, or a magnitude jumping from its neighbours' (see the module's doc). Returns a :class:`ScreenResult` whose examples'
-    values are ``|b|``."""
+    data's scale, or a magnitude jumping from its neighbours' (see the module's doc).
+    Returns a :class:`ScreenResult` whose examples' values are ``|b|``."""
     t = _check_times(t)
     b = np.asarray(b, dtype=float)
     if b.shape != (t.size, 3):

@@ -103,7 +103,7 @@ def test_leading_digit_bit_flip_is_outside_the_earths_range():
     t, field = steady()
     field[417] = 8395.014
     out = screen_reference(t, field)
-    assert out.rejected.tolist() == [417]
+    assert out.rejected_indices.tolist() == [417]
     assert out.counts == {"nonfinite": 0, "earth_range": 1, "spike": 0}
     example = out.examples["earth_range"][0]
     assert (example.index, example.value) == (417, 8395.014)
@@ -118,7 +118,7 @@ def test_tens_digit_bit_flip_is_a_spike_and_units_digit_is_not():
     field[600] = 48391.014
     out = screen_reference(t, field + np.random.default_rng(3).normal(scale=CESIUM_NOISE,
                                                                       size=t.size))
-    assert out.rejected.tolist() == [300]
+    assert out.rejected_indices.tolist() == [300]
     assert out.counts["spike"] == 1
     example = out.examples["spike"][0]
     assert example.index == 300 and example.value == pytest.approx(48315.014, abs=0.3)
@@ -131,7 +131,7 @@ def test_spikes_on_a_survey_field_and_in_pairs_are_caught():
     bad = [1000, 1001, 2500, 4000]              # a pair, then two alone
     field[bad] += [900.0, -700.0, 120.0, -5000.0]
     out = screen_reference(t, field)
-    assert out.rejected.tolist() == bad
+    assert out.rejected_indices.tolist() == bad
     assert out.counts["spike"] == 4
 
 
@@ -141,7 +141,7 @@ def test_the_tens_digit_flip_is_caught_under_10_nT_of_noise_most_of_the_time():
         t, field = steady(noise=10.0, seed=seed)
         field[450] -= 80.0
         out = screen_reference(t, field)
-        assert set(out.rejected.tolist()) <= {450}
+        assert set(out.rejected_indices.tolist()) <= {450}
         caught += out.n_rejected
     assert caught >= 16                         # 89 % over 2,000 seeds
 
@@ -171,7 +171,7 @@ def test_bit_flips_in_a_real_log():
     cesium = parse_log(b"\r\n".join(lines)).cesium
     assert np.all(np.diff(cesium.t) > 0)
     out = screen_reference(cesium.t, cesium.field)
-    assert out.rejected.tolist() == [near[300], 417]
+    assert out.rejected_indices.tolist() == [near[300], 417]
     assert out.counts == {"nonfinite": 0, "earth_range": 1, "spike": 1}
     assert out.examples["earth_range"][0].value == pytest.approx(8395.0, abs=0.1)
     assert out.examples["spike"][0].value == pytest.approx(48315.0, abs=0.1)
@@ -181,7 +181,7 @@ def test_non_numbers_in_the_reference_are_counted():
     t, field = steady(10.0)
     field[[5, 50]] = [np.nan, np.inf]
     out = screen_reference(t, field)
-    assert out.rejected.tolist() == [5, 50] and out.counts["nonfinite"] == 2
+    assert out.rejected_indices.tolist() == [5, 50] and out.counts["nonfinite"] == 2
     assert "nan is not a number" in out.examples["nonfinite"][0].why
 
 
@@ -202,7 +202,7 @@ def test_a_zeroed_axis_is_a_jump_at_any_attitude(coverage):
     assert 38_000 < abs(b[i, axis]) < 43_000        # |b| drops to about 0.55 of 48,000
     b[i, axis] = 0.0
     out = screen_samples(flight.t, b, flight.total)
-    assert out.rejected.tolist() == [i]
+    assert out.rejected_indices.tolist() == [i]
     assert out.counts == {"nonfinite": 0, "scale": 0, "jump": 1}
     assert out.examples["jump"][0].index == i
     assert "off the median of its neighbours" in out.examples["jump"][0].why
@@ -220,7 +220,7 @@ def test_samples_no_calibration_can_map_are_off_scale():
     for with_r in (True, False):
         out = screen_samples(flight.t, b, r if with_r else None)
         expect = [10, 20, 30, 40] if with_r else [10, 20, 30]
-        assert out.rejected.tolist() == expect
+        assert out.rejected_indices.tolist() == expect
         assert out.counts == {"nonfinite": 1, "scale": len(expect) - 1, "jump": 0}
     assert [ex.index for ex in out.examples["scale"]] == [10, 20]
     assert "0 times the expected" in out.examples["scale"][0].why
@@ -244,7 +244,7 @@ def test_one_percent_of_gross_errors_are_all_caught():
         else:
             b[i, rng.integers(0, 3)] = -99_999.9
     out = screen_samples(flight.t, b, flight.total)
-    assert out.rejected.tolist() == bad.tolist()
+    assert out.rejected_indices.tolist() == bad.tolist()
     # A zeroed axis that held more than 87 % of the field leaves |b| under half: off scale.
     assert out.counts["scale"] >= np.count_nonzero(kind > 0)
     assert out.counts["scale"] + out.counts["jump"] == bad.size
@@ -266,9 +266,11 @@ def test_result_counts_examples_summary_and_json():
     assert out.summary() == (
         "reference readings: 6 of 900 rejected (nonfinite 1, earth_range 4, spike 1); "
         "e.g. #10: 8,395.014 nT is outside the Earth's 20,000..75,000 nT")
-    data = json.loads(json.dumps(out.as_dict()))
+    data = json.loads(json.dumps(out.as_dict(), allow_nan=False))
     assert data["counts"] == out.counts and data["rejected"] == 6
     assert data["examples"]["spike"][0]["index"] == 100
+    assert data["examples"]["nonfinite"][0] == {"index": 200, "value": None,
+                                                "why": "nan is not a number"}
     assert data["limits"]["earth_range_nT"] == list(EARTH_RANGE_NT)
     assert data["limits"]["max_gap_s"] == pytest.approx(0.5)
     assert screen_reference([0.0], [48e3]).as_dict()["limits"]["max_gap_s"] is None
@@ -282,7 +284,7 @@ def test_result_counts_examples_summary_and_json():
 def test_shorter_than_the_window():
     t = np.arange(5.0)
     out = screen_reference(t, [48_000.0, 48_000.1, 49_000.0, 47_999.9, 48_000.0])
-    assert out.rejected.tolist() == [2]
+    assert out.rejected_indices.tolist() == [2]
     few = screen_reference(t[:3], [48_000.0, 49_000.0, 48_000.0])
     assert few.n_rejected == 0 and few.untested == 3
     assert "3 too isolated to test" in few.summary()
@@ -316,7 +318,7 @@ def test_neighbours_across_a_gap_are_not_compared():
     out = screen_reference(t, field)
     assert out.n_rejected == 0 and out.untested == 2
     joined = screen_reference(t, field, max_gap=10.0)
-    assert joined.rejected.tolist() == [10, 11]
+    assert joined.rejected_indices.tolist() == [10, 11]
 
 
 def test_a_step_back_in_time_ends_the_neighbourhood():
@@ -325,12 +327,12 @@ def test_a_step_back_in_time_ends_the_neighbourhood():
     field = np.concatenate([np.full(10, 48_000.0), [49_000.0, 49_000.0]])
     forward = np.arange(12) / CESIUM_RATE
     restarted = np.concatenate([forward[:10], forward[:2]])
-    assert screen_reference(forward, field).rejected.tolist() == [10, 11]
+    assert screen_reference(forward, field).rejected_indices.tolist() == [10, 11]
     out = screen_reference(restarted, field)
     assert out.n_rejected == 0 and out.untested == 2
     samples = np.tile([30_000.0, 20_000.0, 30_000.0], (12, 1))
     samples[10:] *= 0.6
-    assert screen_samples(forward, samples).rejected.tolist() == [10, 11]
+    assert screen_samples(forward, samples).rejected_indices.tolist() == [10, 11]
     assert screen_samples(restarted, samples).n_rejected == 0
 
 
@@ -343,7 +345,7 @@ def test_settings_change_what_is_caught():
     b = flight.b_meas.copy()
     b[50] *= 0.85
     assert screen_samples(flight.t, b).n_rejected == 0
-    assert screen_samples(flight.t, b, jump_fraction=0.1).rejected.tolist() == [50]
+    assert screen_samples(flight.t, b, jump_fraction=0.1).rejected_indices.tolist() == [50]
     assert screen_samples(flight.t, b, scale_range=(0.9, 1.1)).counts["scale"] == 1
 
 
