@@ -92,6 +92,7 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 
 __all__ = ["EARTH_RANGE_NT", "SPIKE_FLOOR_NT", "JUMP_FRACTION", "SCALE_RANGE", "HALF_WINDOW",
@@ -300,12 +301,15 @@ def _hampel(x, valid, segment, half, k, floor):
     if n == 0:
         empty = np.zeros(0)
         return _Hampel(np.zeros(0, bool), empty, empty, 0)
-    offsets = np.concatenate([np.arange(-half, 0), np.arange(1, half + 1)])
-    index = np.arange(n)[:, None] + offsets
-    clipped = np.clip(index, 0, n - 1)
-    member = ((index == clipped) & valid[clipped] & (segment[clipped] == segment[:, None])
-              & valid[:, None])
-    window = np.where(member, x[clipped], np.nan)
+    # Each row: the readings half before and half after (padded past the ends), a
+    # neighbour only if valid and in the same segment.
+    sides = np.r_[0:half, half + 1:2 * half + 1]
+    around = sliding_window_view(np.pad(np.where(valid, x, np.nan), half,
+                                        constant_values=np.nan), 2 * half + 1)[:, sides]
+    same = sliding_window_view(np.pad(segment, half, constant_values=-1),
+                               2 * half + 1)[:, sides] == segment[:, None]
+    member = same & ~np.isnan(around) & valid[:, None]
+    window = np.where(member, around, np.nan)
     count = member.sum(axis=1)
     tested = valid & (count >= MIN_NEIGHBOURS)
     median = _row_median(window, count)
