@@ -1139,3 +1139,24 @@ def test_bulk_and_per_line_agree_on_a_clean_survey(survey):
     data = log_of(events)
     slow = logparse._parse(data, "LOG00001.TXT", GPS_LATENCY, per_line=True)
     assert_identical(parsed, slow)
+
+
+#: Bytes a mutation writes: the ones the forms are made of and some they exclude.
+MUTATION_BYTES = b"0123456789+-., *$:/AaFfGgNSEWMKTnx\r\n\x00\x7f\xb0"
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_bulk_and_per_line_agree_on_mutated_logs(seed):
+    """Random bytes written over a short survey, many times: whatever a line becomes, both
+    readings agree."""
+    rng = np.random.default_rng(seed)
+    clean = bytearray(log_of(build(duration=4.0, seed=seed, eol=(CRLF, LF)[seed % 2])))
+    for _ in range(60):
+        data = bytearray(clean)
+        for where in rng.integers(0, len(data), size=int(rng.integers(1, 40))):
+            data[where] = MUTATION_BYTES[int(rng.integers(0, len(MUTATION_BYTES)))]
+        data = bytes(data[: int(rng.integers(len(data) // 2, len(data) + 1))])
+        assert_identical(
+            parse_log(data, gps_latency=GPS_LATENCY),
+            logparse._parse(data, "log", GPS_LATENCY, per_line=True),
+        )
