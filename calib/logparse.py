@@ -789,14 +789,11 @@ def _bulk_vtg(data, starts, length) -> tuple[np.ndarray, tuple[np.ndarray, ...]]
                                           np.concatenate(speed)[order])
 
 
-#: The bulk readers in turn, each on the lines the ones before did not take.
-_BULK_READERS = (
-    ("mag", _bulk_pmag),
-    ("cesium", _bulk_cesium),
-    ("gga", _bulk_gga),
-    ("zda", _bulk_zda),
-    ("vtg", _bulk_vtg),
-)
+#: The bulk readers in turn, each on the lines the ones before did not take: the fixed forms
+#: a block of lines at a time, then the NMEA sentences.
+_FIXED_FORM_READERS = (("mag", _bulk_pmag), ("cesium", _bulk_cesium))
+_BULK_BLOCK_LINES = 1 << 15
+_NMEA_READERS = (("gga", _bulk_gga), ("zda", _bulk_zda), ("vtg", _bulk_vtg))
 
 
 # --- the line reader ----------------------------------------------------------------------
@@ -816,8 +813,9 @@ class _Reader:
         self.gga: list[tuple] = []
         self.zda: list[tuple] = []
         self.vtg: list[tuple] = []
-        #: Records read in bulk (:meth:`read`), per channel: one array per column.
-        self.bulk: dict[str, tuple[np.ndarray, ...]] = {}
+        #: Records read in bulk (:meth:`read`), per channel: per block of lines, one array per
+        #: column.
+        self.bulk: dict[str, list[tuple[np.ndarray, ...]]] = {}
         #: The bytes the ``start`` of :meth:`read_line` counts in (see :attr:`prefix`).
         self.xor_source = data
         self._prefix: bytes | None = None
@@ -838,8 +836,9 @@ class _Reader:
         self.report.messages.append(f"{self.name}:{line}: {reason}: {detail}")
 
     def read(self) -> None:
-        """Read every line: the lines the :data:`_BULK_READERS` take in bulk, every other
-        line with :meth:`read_line`, with the same results as :meth:`read_per_line`."""
+        """Read every line: the lines the bulk readers (:data:`_FIXED_FORM_READERS`,
+        :data:`_NMEA_READERS`) take, every other line with :meth:`read_line`, with the same
+        results as :meth:`read_per_line`."""
         data = np.frombuffer(self.data, dtype=np.uint8)
         ends = np.flatnonzero(data == _LF)
         starts = np.zeros(len(ends), dtype=np.int64)
@@ -850,17 +849,21 @@ class _Reader:
         stops = ends - crlf
         self.report.line_endings["CRLF"] = int(np.count_nonzero(crlf))
         self.report.line_endings["LF"] = len(ends) - self.report.line_endings["CRLF"]
-        rest = np.arange(len(ends))
-        for kind, bulk_reader in _BULK_READERS:
-            taken, columns = bulk_reader(data, starts[rest], stops[rest] - starts[rest])
-            self.bulk[kind] = (rest[taken] + 1, *columns)  # line numbers count from 1
-            rest = np.delete(rest, taken)
-        pieces = [self.data[start:stop] for start, stop in zip(starts[rest].tolist(),
-                                                               stops[rest].tolist())]
+        lines = np.arange(len(ends))
+        # The fixed forms (nearly all of a log) a block of lines at a time: the arrays of a
+        # block stay in the processor's cache, which keeps the time linear in the log's size.
+        rest = [
+            self.read_bulk(_FIXED_FORM_READERS, lines[first : first + _BULK_BLOCK_LINES],
+                           data, starts, stops)
+            for first in range(0, len(ends), _BULK_BLOCK_LINES)
+        ]
+        rest = self.read_bulk(_NMEA_READERS, np.concatenate([lines[:0], *rest]), data, starts,
+                              stops).tolist()
+        pieces = [self.data[starts[index] : stops[index]] for index in rest]
         # The checksums of the rest are computed on their bytes alone.
         self.xor_source = b"".join(pieces)
         offset = 0
-        for index, raw in zip(rest.tolist(), pieces):
+        for index, raw in zip(rest, pieces):
             self.read_line(index + 1, offset, raw)
             offset += len(raw)
         if tail:
@@ -868,19 +871,31 @@ class _Reader:
                 len(ends) + 1, TRUNCATED, f"the last line has no line end ({len(tail)} bytes)"
             )
 
+    def read_bulk(self, readers, lines: np.ndarray, data, starts, stops) -> np.ndarray:
+        """Let the bulk ``readers`` take what they can of ``lines`` in turn; the lines left."""
+        for kind, bulk_reader in readers:
+            taken, columns = bulk_reader(data, starts[lines], stops[lines] - starts[lines])
+            # Line numbers count from 1.
+            self.bulk.setdefault(kind, []).append((lines[taken] + 1, *columns))
+            lines = np.delete(lines, taken)
+        return lines
+
     def columns(self, kind: str, dtypes: tuple) -> list[np.ndarray]:
         """The records of one channel, line by line and in bulk, merged in line order:
         one array per column (the first is the line number)."""
         rows = getattr(self, kind)
         columns = [_column(rows, index, dtype) for index, dtype in enumerate(dtypes)]
-        bulk = self.bulk.get(kind)
-        if bulk is None or not len(bulk[0]):
+        blocks = self.bulk.get(kind, [])
+        if not blocks:
             return columns
-        if not rows:
-            return [np.asarray(column, dtype) for column, dtype in zip(bulk, dtypes)]
-        columns = [np.concatenate([one, other]) for one, other in zip(columns, bulk)]
-        order = np.argsort(columns[0], kind="stable")
-        return [column[order] for column in columns]
+        columns = [
+            np.concatenate([column, *(block[index] for block in blocks)])
+            for index, column in enumerate(columns)
+        ]
+        if rows:
+            order = np.argsort(columns[0], kind="stable")
+            columns = [column[order] for column in columns]
+        return columns
 
     def read_per_line(self) -> None:
         """Read every line with :meth:`read_line` (the reference :meth:`read` agrees with)."""

@@ -1112,15 +1112,19 @@ EDGE_LINES = [
 
 
 @pytest.mark.parametrize(
-    ("seed", "eol"), [(1, CRLF), (2, LF), (3, CRLF)], ids=["crlf", "lf", "crlf-cut"]
+    ("seed", "eol", "block"),
+    [(1, CRLF, None), (2, LF, None), (3, CRLF, None), (4, CRLF, 37), (5, LF, 1)],
+    ids=["crlf", "lf", "crlf-cut", "blocks-of-37", "blocks-of-1"],
 )
-def test_bulk_and_per_line_agree(seed, eol):
+def test_bulk_and_per_line_agree(seed, eol, block, monkeypatch):
+    if block is not None:  # many blocks of lines (see logparse._BULK_BLOCK_LINES)
+        monkeypatch.setattr(logparse, "_BULK_BLOCK_LINES", block)
     rng = np.random.default_rng(seed)
     lines = [event.line for event in build(duration=20.0, seed=seed, eol=eol)]
     for line in EDGE_LINES:
         lines.insert(int(rng.integers(0, len(lines) + 1)), line)
     data = b"".join(lines)
-    if seed == 3:
+    if seed in (3, 5):
         data += lines[int(rng.integers(0, len(lines)))][:-1]  # a last line without its end
     fast = parse_log(data, name="LOG00007.TXT", gps_latency=GPS_LATENCY)
     slow = logparse._parse(data, "LOG00007.TXT", GPS_LATENCY, per_line=True)
@@ -1130,7 +1134,8 @@ def test_bulk_and_per_line_agree(seed, eol):
     reader = logparse._Reader(data, "log")
     reader.read()
     for kind in ("mag", "cesium", "gga", "zda", "vtg"):
-        assert len(reader.bulk[kind][0]) > 0.9 * len(getattr(fast, kind)), kind
+        in_bulk = sum(len(block[0]) for block in reader.bulk[kind])
+        assert in_bulk > 0.9 * len(getattr(fast, kind)), kind
         assert getattr(reader, kind), kind
 
 
