@@ -23,12 +23,15 @@ from pathlib import Path
 import numpy as np
 
 from .card import read_logs
+from .coverage import judge_coverage
 from .ellipsoid import fit_ellipsoid
 from .heading import (align_heading, straight_legs, tilt_compensated_heading, true_heading,
                       wrap_degrees)
 from .logparse import parse_log, to_arrays
+from .holdout import held_out
 from .noise import allan_deviation
 from .scalar import OBJECTIVES, PARAMETERS, apply_scalar, calibrate_scalar
+from .screen import screen_reference, screen_samples
 
 
 __all__ = ["CalibrationError", "ReportError", "CalibrationRun", "HeadingAnalysis",
@@ -167,6 +170,11 @@ class CalibrationRun:
     vectors: np.ndarray        # calibrated field vectors (N, 3), nT
     heading: "HeadingAnalysis"
     notes: list = field(default_factory=list)   # what the pipeline left out or assumed
+    screens: dict = field(default_factory=dict)  # name -> calib.screen.ScreenResult
+    fitted: np.ndarray = None  # bool per sample: screened in and kept by the robust loss
+    held_out: object = None    # calib.holdout.HeldOut, or None (``held_out_note`` says why)
+    held_out_note: str = ""
+    coverage: object = None    # calib.coverage.CoverageVerdict (scalar fits)
 
     @property
     def calibrated(self):
@@ -186,11 +194,19 @@ class CalibrationRun:
 
     def summary(self):
         raw = np.linalg.norm(self.b, axis=1) - self.r
+        fitted = np.ones(len(self.b), bool) if self.fitted is None else self.fitted
         out = {"log": self.log_name, "samples": int(len(self.b)), "reference": self.reference,
                "method": self.method,
                "rms_before_nT": float(np.sqrt(np.mean(raw ** 2))),
                "rms_after_nT": float(np.sqrt(np.mean(self.residual ** 2))),
+               "samples_fitted": int(fitted.sum()),
+               "rms_after_fitted_nT": float(np.sqrt(np.mean(self.residual[fitted] ** 2))),
+               "held_out": None if self.held_out is None else self.held_out.as_dict(),
+               "held_out_note": self.held_out_note or None,
+               "screening": {name: screen.as_dict() for name, screen in self.screens.items()},
                "log_report": jsonable(vars(self.parsed.report))}
+        if self.coverage is not None:
+            out["coverage_gate"] = self.coverage.as_dict()
         if self.method == "ellipsoid":
             res = self.result
             out.update(fit=res.method, center_nT=res.center.tolist(), W=res.W.tolist(),
@@ -329,13 +345,31 @@ def _cesium_in_range(parsed, notes):
     return dataclasses.replace(parsed, cesium=kept)
 
 
-def _reference(parsed, ref, mag_axis, use_time, notes):
+def _screen_cesium(parsed, screens):
+    """The parsed log with the cesium readings :func:`~maglog.calib.screen.screen_reference`
+    finds implausible left out (outside the Earth's range, isolated spikes such as a bit
+    flip); the screen's result goes into ``screens``."""
+    ces = parsed.cesium
+    if len(ces) == 0:
+        return parsed
+    times = ces.t if np.all(np.isfinite(ces.t)) else ces.line.astype(float)
+    screen = screen_reference(times, ces.field)
+    screens["reference"] = screen
+    if screen.n_rejected == 0:
+        return parsed
+    good = screen.keep
+    kept = type(ces)(ces.line[good], ces.field[good], ces.signal[good], ces.t[good])
+    return dataclasses.replace(parsed, cesium=kept)
+
+
+def _reference(parsed, ref, mag_axis, use_time, notes, screens):
     mag = parsed.mag
     if not isinstance(ref, str):
         value = check_reference(ref)
         return np.full(len(mag), value), f"constant {value:g} nT"
     if ref == "cesium":
         parsed = _cesium_in_range(parsed, notes)
+        parsed = _screen_cesium(parsed, screens)
         ces = parsed.cesium
         if len(ces) < 2:
             raise CalibrationError(f"{parsed.name}: fewer than 2 cesium samples; use --ref "
@@ -524,7 +558,8 @@ def _calibrate(path, ref, method, seed, attitude, objective):
     notes = []
     use_time = bool(np.all(np.isfinite(mag.t)))
     mag_axis = mag.t if use_time else mag.line.astype(float)
-    r, reference = _reference(parsed, ref, mag_axis, use_time, notes)
+    screens = {}
+    r, reference = _reference(parsed, ref, mag_axis, use_time, notes, screens)
     keep = np.isfinite(r)
     if keep.sum() < len(PARAMETERS) + 1:
         raise CalibrationError(f"{name}: the reference covers only {int(keep.sum())} "
@@ -532,20 +567,21 @@ def _calibrate(path, ref, method, seed, attitude, objective):
     b, r = mag.b[keep], r[keep]
     t = mag.t[keep] if use_time else mag_axis[keep]
     _check_scale(name, b, r)
+    screen = screen_samples(t, b, r)
+    screens["samples"] = screen
+    allowed = screen.keep
+    if allowed.sum() < len(PARAMETERS) + 1:
+        raise CalibrationError(f"{name}: only {int(allowed.sum())} plausible magnetometer "
+                               f"samples ({screen.summary()})")
     try:
+        fit = _fitter(b, r, method, seed, objective)
+        result, residual_of = fit(allowed)
         if method == "ellipsoid":
-            result = fit_ellipsoid(b, float(np.median(r)))
-            if not result.success and result.coverage.complete:
-                # The algebraic quadric is not an ellipsoid: the constrained fit always is.
-                result = fit_ellipsoid(b, float(np.median(r)), method="constrained")
-                result.warnings.append("the algebraic fit gave no ellipsoid: constrained "
-                                       "(Li-Griffiths) fit used")
-            if not result.success:
-                raise CalibrationError(f"{name}: ellipsoid fit refused: {result.message}")
             vectors = (b - result.center) @ result.W.T
+            fitted = allowed
         else:
-            result = calibrate_scalar(b, r, method=method, seed=seed, objective=objective)
             vectors = apply_scalar(result.K, result.c, b)
+            fitted = result.kept
     except ValueError as error:
         # The fits' own checks of what samples can determine (a stuck axis, too few
         # distinct vectors): said with the log's name.
@@ -557,7 +593,19 @@ def _calibrate(path, ref, method, seed, attitude, objective):
         raise CalibrationError(f"{name}: the {method} fit gave no finite calibration")
     run = CalibrationRun(log_name=name, t=t, b=b, r=r, reference=reference, method=method,
                          result=result, parsed=parsed, vectors=vectors,
-                         heading=_heading(parsed, t, use_time, vectors, attitude), notes=notes)
+                         heading=_heading(parsed, t, use_time, vectors, attitude), notes=notes,
+                         screens=screens, fitted=fitted)
+    for screen in screens.values():
+        if screen.n_rejected:
+            notes.append(f"screening: {screen.summary()}")
+    if method != "ellipsoid":
+        run.coverage = judge_coverage(result, b)
+        if result.rejected - int(np.count_nonzero(~allowed)):
+            notes.append(f"robust loss: {result.rejected - int(np.count_nonzero(~allowed))} "
+                         f"samples more than {result.robust_cut_nT:.3g} nT off the fit left "
+                         "out of it")
+    run.held_out, run.held_out_note = held_out(
+        t, b, r, fitted, lambda mask: fit(mask)[1], run.residual)
     before = float(np.sqrt(np.mean((np.linalg.norm(b, axis=1) - r) ** 2)))
     after = float(np.sqrt(np.mean(run.residual ** 2)))
     field_nt = float(np.median(r))
@@ -578,6 +626,35 @@ def _calibrate(path, ref, method, seed, attitude, objective):
                      f"({OUTLIER_SIGMAS:g} robust standard deviations) off the fit: spikes "
                      "or bad samples in the log; the residual RMS is mostly theirs")
     return run
+
+
+def _fitter(b, r, method, seed, objective):
+    """``fit(mask) -> (result, residual_of)``: the chosen fit of the samples in ``mask``,
+    and a function giving its total-field residual on the samples of another mask."""
+    def fit(mask):
+        if method == "ellipsoid":
+            result = fit_ellipsoid(b[mask], float(np.median(r[mask])))
+            if not result.success and result.coverage.complete:
+                # The algebraic quadric is not an ellipsoid: the constrained fit always is.
+                result = fit_ellipsoid(b[mask], float(np.median(r[mask])),
+                                       method="constrained")
+                result.warnings.append("the algebraic fit gave no ellipsoid: constrained "
+                                       "(Li-Griffiths) fit used")
+            if not result.success:
+                raise ValueError(f"ellipsoid fit refused: {result.message}")
+
+            def residual_of(other):
+                return np.linalg.norm((b[other] - result.center) @ result.W.T,
+                                      axis=1) - r[other]
+        else:
+            result = calibrate_scalar(b, r, method=method, seed=seed, objective=objective,
+                                      keep=mask)
+
+            def residual_of(other):
+                return np.linalg.norm(apply_scalar(result.K, result.c, b[other]),
+                                      axis=1) - r[other]
+        return result, residual_of
+    return fit
 
 
 def _check_scale(name, b, r):
@@ -699,6 +776,42 @@ def _plots(run, out, staged, allan):
     return files
 
 
+def _coverage_lines(verdict, result):
+    lines = ["## Coverage gate", "", f"Verdict: {verdict.message}.", "",
+             "Judged on the fit itself: each parameter's dilution of precision (its 1-sigma "
+             "in nT of field, K's entries times the field, per nT of noise per sqrt(N); a "
+             "full tumble gives 1.7-4) and the calibrated field's directions about the "
+             "fitted centre.", "",
+             f"- octants about the fitted centre reached (≥ {verdict.min_per_octant} "
+             f"samples): {verdict.octants_reached} of 8 ({verdict.octants.tolist()})",
+             f"- paper B's check, octants about the running centroid of the raw samples: "
+             f"{verdict.paper_filled} of 8 filled ({verdict.paper_octants.tolist()}); it "
+             "counts octants of a centroid inside the covered cap, so it fills on flights "
+             "that leave parameters undetermined"]
+    if result.rejected:
+        lines.append(f"- samples not fitted: {result.rejected}")
+    return lines + [""]
+
+
+def _screening_lines(run):
+    lines = ["## Screening and robust loss", ""]
+    if not run.screens:
+        lines.append("- no screening (the reference is not a cesium series)")
+    for screen in run.screens.values():
+        lines.append(f"- {screen.summary()}")
+        for reason, examples in screen.examples.items():
+            lines += [f"  - {reason}, #{ex.index}: {ex.why}" for ex in examples]
+    res = run.result
+    if run.method != "ellipsoid":
+        allowed = run.screens["samples"].keep if "samples" in run.screens else \
+            np.ones(len(run.b), bool)
+        robust = int(np.count_nonzero(allowed & ~res.kept))
+        cut = "none" if not np.isfinite(res.robust_cut_nT) else f"{res.robust_cut_nT:.3g} nT"
+        lines.append(f"- robust loss (Talwar's, cut-off {cut} from the median residual): "
+                     f"{robust} samples left out of the fit")
+    return lines + [""]
+
+
 def _heading_lines(analysis, t):
     lines = ["## Heading", ""]
     if np.isnan(analysis.declination):
@@ -789,19 +902,43 @@ def _report_lines(run, summary, files, allan=None):
              f"- total-field RMS against the reference: {summary['rms_before_nT']:.2f} nT "
              f"before, {summary['rms_after_nT']:.2f} nT after"]
     res = run.result
-    if run.method != "ellipsoid":
-        lines.append(f"- fit: {res.message} (polish: least_squares {res.solver}; {res.nit} "
-                     "swarm iterations and function evaluations in all)")
+    if run.method != "ellipsoid" and res.objective == "eiv":
+        noise = res.noise
+        lines.append(f"- fit: {res.message}; objective: errors in variables (the "
+                     "magnetometer's noise corrected for: estimated "
+                     f"{noise['magnetometer_nT']:.3g} nT per axis, the reference's "
+                     f"{noise['reference_nT']:.2g} nT); {res.nit} swarm and "
+                     "Gauss-Newton iterations in all")
+    elif run.method != "ellipsoid":
+        lines.append(f"- fit: {res.message}; objective: the paper's (polish: least_squares "
+                     f"{res.solver}; {res.nit} swarm iterations and function evaluations "
+                     "in all)")
     else:
         lines.append(f"- fit: {res.method} ellipsoid, {res.message}")
+    fitted = summary["samples_fitted"]
+    if fitted != len(run.b):
+        lines.append(f"- fitted {fitted} of {len(run.b)} samples (the others screened out "
+                     "or rejected by the robust loss: see below); their RMS after: "
+                     f"{summary['rms_after_fitted_nT']:.2f} nT")
+    if run.held_out is not None:
+        lines.append(f"- held out: {run.held_out.message}")
+    else:
+        lines.append(f"- held out: not scored ({run.held_out_note})")
+    if run.coverage is not None:
+        lines.append(f"- coverage gate: {run.coverage.message}")
     lines.append("")
     if run.warnings:
         lines += ["## Warnings", ""] + [f"- {warning}" for warning in run.warnings] + [""]
     lines += ["## Parameters", ""]
     if run.method != "ellipsoid":
-        lines += ["| parameter | value | uncertainty (1 sigma) |", "|---|---:|---:|"]
-        lines += [f"| {n} | {v:.6g} | {u:.2g} |"
-                  for n, v, u in zip(PARAMETERS, res.x, res.uncertainties)]
+        lines += ["| parameter | value | uncertainty (1 sigma) | dilution of precision | "
+                  "determined by the coverage |", "|---|---:|---:|---:|---|"]
+        for n, v, u, d, ok, held in zip(PARAMETERS, res.x, res.uncertainties, res.dop,
+                                        res.determined, res.held):
+            sigma = "none (held to the prior)" if held else f"{u:.2g}"
+            verdict = "no: held to the isotropic prior" if held else (
+                "yes" if ok else "no: fitted, weakly")
+            lines.append(f"| {n} | {v:.6g} | {sigma} | {d:.3g} | {verdict} |")
         lines += ["", "Paper's Table 1 form: P = K^-1 and the offset P c (nT):", "",
                   "```", np.array2string(res.P, precision=5),
                   np.array2string(res.offset_sensor, precision=2), "```", ""]
@@ -817,6 +954,9 @@ def _report_lines(run, summary, files, allan=None):
                   f"Octant coverage: {res.coverage.filled} of 8 octants with at least "
                   f"{res.coverage.min_per_octant} samples ({res.coverage.counts.tolist()}).",
                   ""]
+    if run.coverage is not None:
+        lines += _coverage_lines(run.coverage, res)
+    lines += _screening_lines(run)
     if run.heading is not None:
         lines += _heading_lines(run.heading, run.t)
     if allan is not None:

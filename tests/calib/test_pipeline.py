@@ -346,7 +346,8 @@ def test_json_is_strict_and_html_valid_without_gps(flight, tmp_path):
     assert page.find(f"{XHTML}head/{XHTML}meta").get("charset") == "utf-8"
     table = page.find(f".//{XHTML}table")
     assert [th.text for th in table.iter(f"{XHTML}th")] == [
-        "parameter", "value", "uncertainty (1 sigma)"]
+        "parameter", "value", "uncertainty (1 sigma)", "dilution of precision",
+        "determined by the coverage"]
     assert len(list(table.iter(f"{XHTML}tr"))) == 10
     images = [img.get("src") for img in page.iter(f"{XHTML}img")]
     assert images == ["figure7.png", "coverage.png", "residuals.png", "allan.png"]
@@ -449,3 +450,51 @@ def test_a_fit_far_from_the_reference_is_said(tmp_path):
     summary = strict_json(tmp_path / "report" / "parameters.json")
     assert summary["rms_after_nT"] > 1000
     assert any("the model does not fit these data" in w for w in summary["warnings"])
+
+
+def test_bit_flip_and_zeroed_axis_are_rejected_and_listed(tmp_path):
+    # The faults in a 90-s log: one cesium reading's leading digit flipped
+    # ($ 48395.014 -> $ 08395.014; the cesium line has no checksum) and one magnetometer
+    # sample with a valid checksum but a zeroed axis. Both are rejected, counted and said
+    # with their reason; the fit stays where the clean log's is.
+    flight = make_flight(coverage="uav", seconds=90, seed=5)
+    clean = calibrate_card_log(tmp_path / "clean", flight.log())
+    log = edit_log(flight.log(),
+                   cesium=lambda k, text: " 0" + text[2:] if k == 400 else text,
+                   pmag=set_axes(lambda k, x, y, z: (x, y, 0.0) if k == 900 else (x, y, z)))
+    status, _, err = calibrate_log(tmp_path, log)
+    assert status == 0, err
+    summary = strict_json(tmp_path / "report" / "parameters.json")
+    reference = summary["screening"]["reference"]
+    samples = summary["screening"]["samples"]
+    assert reference["counts"]["earth_range"] == 1 and reference["rejected"] == 1
+    assert samples["rejected"] == 1 and samples["examples"]["scale"] + \
+        samples["examples"]["jump"]
+    assert abs(summary["parameters"]["c3"] - clean["parameters"]["c3"]) < 5.0
+    assert summary["rms_after_fitted_nT"] < 1.02 * clean["rms_after_fitted_nT"]
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "reference readings: 1 of" in text and "is outside the Earth's" in text
+    assert "magnetometer samples: 1 of" in text
+    assert "## Coverage gate" in text and "leaves k33, c3 undetermined" in text
+
+
+def calibrate_card_log(folder, log):
+    folder.mkdir()
+    status, _, err = calibrate_log(folder, log)
+    assert status == 0, err
+    return strict_json(folder / "report" / "parameters.json")
+
+
+def test_held_out_figures_are_in_the_report(flight, tmp_path):
+    status, _, err = calibrate_log(tmp_path, flight.log())
+    assert status == 0, err
+    summary = strict_json(tmp_path / "report" / "parameters.json")
+    held = summary["held_out"]
+    # A 30-s UAV pattern: both halves turn through the same attitudes; the parameters
+    # carry over to the half they did not see, close to the in-sample figure.
+    assert held["samples"] == summary["samples_fitted"]
+    assert 1.0 <= held["ratio"] < 1.5 and len(held["halves"]) == 2
+    assert held["rms_in_sample_nT"] == pytest.approx(summary["rms_after_fitted_nT"], rel=0.05)
+    assert summary["coverage_gate"]["accepted"] is False
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "- held out: fitted on one half of the flight, scored on the other" in text
