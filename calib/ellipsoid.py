@@ -8,12 +8,22 @@ Two fits of the quadric a x^2 + b y^2 + c z^2 + 2f yz + 2g xz + 2h xy + 2p x + 2
 + d = 0: the nine-parameter algebraic least-squares fit (d = -1), and the constrained fit
 of Li and Griffiths (2004) that always returns an ellipsoid (4J - I^2 = 1).
 
-Coverage gate: samples are counted in the eight octants around the running centroid; a
-fit is attempted only when every octant has ``min_per_octant`` samples (progress = octants
-filled), because a fit from one side of the ellipsoid is not determined. Samples that
-cannot determine any fit (a stuck axis, fewer than ten distinct vectors, values no
-magnetometer gives) are refused before the gate with a ``ValueError`` that says so: a
-stuck axis equal to the running centroid would otherwise count in every octant.
+Coverage gate, two kinds:
+
+- ``gate="centre"`` (the default): the fit is made, then the calibrated directions
+  ``W (b - centre)`` are counted in the eight octants about the fitted centre; the fit is
+  refused (``success`` False, the fitted centre and W kept for inspection) unless every
+  octant holds ``min_per_octant`` samples: a fit from one side of the ellipsoid leaves the
+  offset along that side undetermined.
+- ``gate="paper"``: paper B's, samples counted in the octants about the running centroid
+  of the raw samples, and no fit attempted before all eight hold ``min_per_octant``. On a
+  UAV pattern the centroid lies inside the covered cap, so all eight fill although the
+  field never pointed into half of the sphere (calib.coverage explains); kept as what the
+  paper did.
+
+Samples that cannot determine any fit (a stuck axis, fewer than ten distinct vectors,
+values no magnetometer gives) are refused before either gate with a ``ValueError`` that
+says so: a stuck axis equal to the running centroid would otherwise count in every octant.
 
 Ref: Q. Li and J. G. Griffiths, "Least squares ellipsoid specific fitting", Geometric
      Modeling and Processing 2004, pp. 335-340.
@@ -32,8 +42,9 @@ __all__ = ["Coverage", "octant_coverage", "EllipsoidResult", "fit_ellipsoid"]
 @dataclass
 class Coverage:
     counts: np.ndarray          # samples per octant (index = 4 sx + 2 sy + sz, s = 1 if >=)
-    centroid: np.ndarray
+    centroid: np.ndarray        # the point the octants are about
     min_per_octant: int
+    about: str = "running centroid"     # or "fitted centre"
 
     @property
     def filled(self):
@@ -45,7 +56,7 @@ class Coverage:
 
     def report(self):
         return {"octants_filled": self.filled, "counts": self.counts.tolist(),
-                "min_per_octant": self.min_per_octant,
+                "min_per_octant": self.min_per_octant, "about": self.about,
                 "centroid": self.centroid.tolist()}
 
 
@@ -69,9 +80,10 @@ class EllipsoidResult:
     rms: float                  # RMS of |W (b - center)| - field
     success: bool
     message: str
-    coverage: Coverage
+    coverage: Coverage          # the gate's: about the fitted centre, or paper B's
     method: str
     warnings: list = field(default_factory=list)
+    paper_coverage: Coverage = None     # paper B's octants about the running centroid
 
 
 def _design(b):
@@ -116,10 +128,15 @@ def _to_geometry(v, field_nt):
     return center, w, 1.0 / np.sqrt(values)
 
 
-def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate=True):
+GATES = ("centre", "paper")
+
+
+def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate="centre"):
     """Fit the samples' ellipsoid; ``field_nt`` is the field's magnitude (the sphere's
-    radius after calibration). With ``gate``, an incomplete octant coverage is refused
-    (``success`` False, the coverage in the result) instead of fitted."""
+    radius after calibration). ``gate``: "centre" (octants of the calibrated directions
+    about the fitted centre, the default; True means it too), "paper" (paper B's octants
+    about the running centroid, checked before fitting) or False (no gate). A refused fit
+    has ``success`` False and says why; its coverage is in the result."""
     b = check_samples(b, 10, "for an ellipsoid's nine parameters")
     field_nt = float(field_nt)
     if not (np.isfinite(field_nt) and 0 < field_nt <= MAX_FIELD_NT):
@@ -127,14 +144,18 @@ def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate=Tr
                          f"{field_nt!r}")
     if method not in ("algebraic", "constrained"):
         raise ValueError(f"Method must be 'algebraic' or 'constrained', not {method!r}")
-    coverage = octant_coverage(b, min_per_octant=min_per_octant)
+    if gate is True:
+        gate = "centre"
+    if gate not in GATES and gate not in (False, None):
+        raise ValueError(f"Gate must be one of {', '.join(GATES)} or False, not {gate!r}")
+    paper = octant_coverage(b, min_per_octant=min_per_octant)
     nan3 = np.full(3, np.nan)
-    if gate and not coverage.complete:
+    if gate == "paper" and not paper.complete:
         return EllipsoidResult(center=nan3, W=np.full((3, 3), np.nan), radii=nan3,
                                rms=np.nan, success=False,
-                               message=f"coverage: {coverage.filled} of 8 octants have "
+                               message=f"coverage: {paper.filled} of 8 octants have "
                                        f"{min_per_octant} samples",
-                               coverage=coverage, method=method)
+                               coverage=paper, method=method, paper_coverage=paper)
     # Normalise for conditioning; undo afterwards.
     mean = b.mean(axis=0)
     spread = float(np.sqrt(np.mean(np.sum((b - mean) ** 2, axis=1))))
@@ -150,11 +171,24 @@ def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate=Tr
                                rms=np.nan, success=False,
                                message="the fitted quadric is not an ellipsoid (the "
                                        "constrained method always gives one)",
-                               coverage=coverage, method=method)
+                               coverage=paper, method=method, paper_coverage=paper)
     center = mean + spread * center_u
     w = field_nt * w_u / spread
-    calibrated = np.linalg.norm((b - center) @ w.T, axis=1)
+    vectors = (b - center) @ w.T
+    calibrated = np.linalg.norm(vectors, axis=1)
     radii = field_nt / np.linalg.eigvalsh(w)
+    signs = (vectors >= 0).astype(int)
+    about = Coverage(counts=np.bincount(4 * signs[:, 0] + 2 * signs[:, 1] + signs[:, 2],
+                                        minlength=8),
+                     centroid=center, min_per_octant=min_per_octant, about="fitted centre")
+    success, message = True, "fitted"
+    if gate == "centre" and not about.complete:
+        success = False
+        message = (f"coverage: the field reached {about.filled} of 8 octants about the fitted "
+                   f"centre with {min_per_octant} samples ({about.counts.tolist()}): the "
+                   "offset is undetermined towards the others")
     return EllipsoidResult(center=center, W=w, radii=np.sort(radii),
                            rms=float(np.sqrt(np.mean((calibrated - field_nt) ** 2))),
-                           success=True, message="fitted", coverage=coverage, method=method)
+                           success=success, message=message,
+                           coverage=about if gate != "paper" else paper, method=method,
+                           paper_coverage=paper)

@@ -634,7 +634,7 @@ def _fitter(b, r, method, seed, objective):
     def fit(mask):
         if method == "ellipsoid":
             result = fit_ellipsoid(b[mask], float(np.median(r[mask])))
-            if not result.success and result.coverage.complete:
+            if not result.success and not np.all(np.isfinite(result.W)):
                 # The algebraic quadric is not an ellipsoid: the constrained fit always is.
                 result = fit_ellipsoid(b[mask], float(np.median(r[mask])),
                                        method="constrained")
@@ -951,8 +951,11 @@ def _report_lines(run, summary, files, allan=None):
                   "scalar model it leaves the frame's rotation free.", "",
                   "```", "centre (nT): " + np.array2string(res.center, precision=1),
                   "W:", np.array2string(res.W, precision=6), "```", "",
-                  f"Octant coverage: {res.coverage.filled} of 8 octants with at least "
-                  f"{res.coverage.min_per_octant} samples ({res.coverage.counts.tolist()}).",
+                  f"Coverage gate: the calibrated field reached {res.coverage.filled} of 8 "
+                  f"octants about the {res.coverage.about} with at least "
+                  f"{res.coverage.min_per_octant} samples ({res.coverage.counts.tolist()}); "
+                  f"paper B's check (octants about the running centroid of the raw samples): "
+                  f"{res.paper_coverage.filled} of 8 ({res.paper_coverage.counts.tolist()}).",
                   ""]
     if run.coverage is not None:
         lines += _coverage_lines(run.coverage, res)

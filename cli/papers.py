@@ -269,10 +269,11 @@ def _heading_errors(model, counts, trials, score_seconds, seed):
             taken = select_by_octant(pool.b_meas, n)
             if taken is None:
                 continue
-            fit = fit_ellipsoid(pool.b_meas[taken], field_nt, min_per_octant=n)
+            fit = fit_ellipsoid(pool.b_meas[taken], field_nt, min_per_octant=n,
+                                gate="paper")
             if not fit.success:
                 fit = fit_ellipsoid(pool.b_meas[taken], field_nt, method="constrained",
-                                    min_per_octant=n)
+                                    min_per_octant=n, gate="paper")
             if not fit.success:
                 continue
             calibrated = (score.b_meas - fit.center) @ fit.W.T

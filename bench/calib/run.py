@@ -379,9 +379,9 @@ def thread_scaling(b, r, lower, upper, repeats, particles=40, iterations=300):
     out = []
     for threads in sorted({1, numba.config.NUMBA_NUM_THREADS}):
         numba.set_num_threads(threads)
-        _, seconds = repeat(lambda: _pso.pso(lambda x: _pso.cost_numba(x, b, r), lower, upper,
-                                             particles=particles, iterations=iterations,
-                                             seed=0), repeats)
+        _, seconds = repeat(lambda: _pso.pso(lambda x: _pso.cost_numba(x, b, r, threads=True),
+                                             lower, upper, particles=particles,
+                                             iterations=iterations, seed=0), repeats)
         out.append({"threads": threads, "seconds": summary(seconds)})
         print(f"PSO maglog ring on numba, {threads} thread(s): best {min(seconds) * 1e3:.0f} "
               f"ms, median {statistics.median(seconds) * 1e3:.0f} ms")

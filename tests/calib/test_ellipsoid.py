@@ -31,13 +31,31 @@ def test_recovers_hard_and_soft_iron(method):
     assert result.rms < 10
 
 
-def test_gate_refuses_until_every_octant_is_filled():
+@pytest.mark.parametrize("gate", ["centre", "paper"])
+def test_gate_refuses_until_every_octant_is_filled(gate):
     b, _, hard = samples(2)
-    early = fit_ellipsoid(b[:30], FIELD, min_per_octant=10)   # too few samples yet
+    early = fit_ellipsoid(b[:30], FIELD, min_per_octant=10, gate=gate)   # too few yet
     assert not early.success and early.coverage.filled < 8
     assert "octants" in early.message
-    later = fit_ellipsoid(b, FIELD, min_per_octant=10)
+    later = fit_ellipsoid(b, FIELD, min_per_octant=10, gate=gate)
     assert later.success and later.coverage.filled == 8
+    assert later.coverage.about == ("fitted centre" if gate == "centre" else
+                                    "running centroid")
+
+
+def test_centre_gate_refuses_one_side_where_the_paper_gate_accepts():
+    # A hemisphere of directions: paper B's running centroid sits inside it and all eight
+    # octants about it fill; about the fitted centre only four do, and the fit is refused
+    # (its centre and W kept for inspection).
+    b, _, hard = samples(5, n=3000, hemisphere=True)
+    paper = fit_ellipsoid(b, FIELD, gate="paper")
+    centre = fit_ellipsoid(b, FIELD)
+    assert paper.success and paper.coverage.complete
+    assert not centre.success and centre.coverage.filled == 4
+    assert "4 of 8 octants about the fitted centre" in centre.message
+    assert np.all(np.isfinite(centre.center)) and centre.paper_coverage.complete
+    with pytest.raises(ValueError, match="Gate must be one of centre, paper or False, not 'x'"):
+        fit_ellipsoid(b, FIELD, gate="x")
 
 
 def test_coverage_counts_every_octant():

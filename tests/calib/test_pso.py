@@ -37,6 +37,8 @@ def test_cost_twins_agree():
                                                        size=(24, 9))
     np.testing.assert_allclose(_pso.cost_numba(params, b, r), _pso.cost_numpy(params, b, r),
                                rtol=1e-12)
+    np.testing.assert_allclose(_pso.cost_numba(params, b, r, threads=True),
+                               _pso.cost_numpy(params, b, r), rtol=1e-12)
 
 
 @pytest.mark.parametrize("topology", _pso.TOPOLOGIES)
