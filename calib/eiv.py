@@ -73,12 +73,16 @@ UNDETERMINED_DOP = 30.0
 #: A direction whose dilution exceeds this is not fitted at all: the data cannot tell it
 #: from the trivial solution (K -> 0, |c| = r), so a prior holds it to the isotropic start.
 DEGENERATE_DOP = 1000.0
-#: Strength of that prior per sample, in the scaled information's units (a well-determined
-#: direction has ~0.1-1).
+#: Strength of that prior relative to the strongest direction of the data.
 PRIOR_STRENGTH = 1.0
-#: A parameter whose change along a held direction exceeds this share is held too (no
-#: uncertainty is reported for it).
-HELD_LOADING = 0.05
+#: How wrong the isotropic start may be, for the parameters the prior holds: K's entries
+#: by this much (scale factors and soft iron of a few %, misalignment of a few degrees)...
+PRIOR_ERROR_K = 0.1
+#: ... and the offset by this share of the field (paper A's Table 1: 3.5 %).
+PRIOR_ERROR_C = 0.05
+#: A parameter such an error could move by more than this many of its own standard
+#: deviations is reported as held (no uncertainty): its value is the prior's.
+HELD_BIAS = 0.5
 
 
 @dataclass
@@ -374,7 +378,7 @@ class Fit:
     dop: np.ndarray             # dilution of precision per parameter
     determined: np.ndarray      # bool per parameter
     held: np.ndarray            # bool per parameter: moved along a direction the prior holds
-    weak: np.ndarray            # (9, m) the directions held to the prior (scaled parameters)
+    weak: np.ndarray            # (m, 9) the directions held to the prior (reported parameters)
     rounds: int                 # reweighting rounds
     nit: int                    # Gauss-Newton iterations in all
     converged: bool
@@ -403,21 +407,30 @@ def _plausible(q, scale_guess):
                 and np.all(np.abs(off) < 0.5) and np.linalg.norm(q[6:9]) < 0.5)
 
 
-def _weak_prior(root, q, target, count):
-    """Prior rows holding the weakest directions of the moment problem at ``q`` to
-    ``target`` (None when none is weak). Returns (directions (9, m), rows, target) with m the
-    number of eigenvalues of the scaled information (per sample, per unit noise) whose
-    dilution exceeds :data:`DEGENERATE_DOP`."""
+def _weak_prior(root, q, target, count, shift, field_nt):
+    """The directions the data cannot tell from the trivial solution, and prior rows
+    holding them to ``target``. The information per sample is taken from the moment
+    problem at ``q`` and expressed in the reported parameters, K's entries times the field
+    and c in nT (the dilution's units); a direction whose dilution exceeds
+    :data:`DEGENERATE_DOP` is held. Returns (rows in the reported parameters (m, 9), the
+    prior in the moment problem's parameters (rows, target)), or (None, None)."""
     j = root[:, :10] @ theta_jacobian(q)
-    info = j.T @ j / (4.0 * count)       # per sample, parameters and noise in field units
-    values, vectors = np.linalg.eigh(info)
+    jtj = j.T @ j
+    d = _unit_jacobian(shift, field_nt)
+    units = np.array([field_nt] * 6 + [1.0] * 3)
+    info = field_nt ** 2 * d.T @ jtj @ d / (4.0 * count) / np.outer(units, units)
+    values, vectors = np.linalg.eigh((info + info.T) / 2)
     weak = values < 1.0 / DEGENERATE_DOP ** 2
     if not np.any(weak):
-        return np.zeros((9, 0)), None
-    directions = vectors[:, weak]
-    # Rows as strong as a well-determined direction, so the prior wins only along them.
-    rows = directions.T * np.sqrt(PRIOR_STRENGTH * 4.0 * count)
-    return directions, (rows, rows @ target)
+        return None, None
+    rows_x = vectors[:, weak].T * units[None, :]
+    rows_q = rows_x @ np.linalg.inv(d)
+    rows_q /= np.linalg.norm(rows_q, axis=1)[:, None]
+    # As strong as the strongest direction of the data: the prior decides only along the
+    # held directions, which the data leave free (they are the information's own
+    # eigenvectors, so holding them does not move the others).
+    rows_q *= np.sqrt(PRIOR_STRENGTH * np.linalg.eigvalsh(jtj)[-1])
+    return rows_x, (rows_q, rows_q @ target)
 
 
 def fit_eiv(b, r, *, start=None, sigma_r=None, robust=True, keep=None, correct=True):
@@ -443,7 +456,7 @@ def fit_eiv(b, r, *, start=None, sigma_r=None, robust=True, keep=None, correct=T
     converged = True
     cut = np.inf
     q = None if start is None else _to_unit(np.asarray(start, float), shift, field_nt)
-    directions, prior = np.zeros((9, 0)), None
+    held_rows, prior = None, None
     for rounds in range(1, MAX_ROUNDS + 1):
         mom = moments(b, r, kept, shift=shift, scale=field_nt)
         s = mom.matrix(sigma_m if correct else 0.0, sigma_r if correct else 0.0)
@@ -460,14 +473,15 @@ def fit_eiv(b, r, *, start=None, sigma_r=None, robust=True, keep=None, correct=T
                 candidates.insert(0, q)
             ends = []
             for candidate in candidates:
-                directions, prior = _weak_prior(root, candidate, target, mom.count)
+                held_rows, prior = _weak_prior(root, candidate, target, mom.count, shift,
+                                               field_nt)
                 end, it, ok = _gauss_newton(candidate, root, prior)
                 nit += it
                 cost = objective(end, s)
                 ends.append((not _plausible(end, scale_guess), cost, end, ok))
             _, _, q, converged = min(ends, key=lambda item: item[:2])
         # The directions the coverage leaves to the prior, judged where the fit stands.
-        directions, prior = _weak_prior(root, q, target, mom.count)
+        held_rows, prior = _weak_prior(root, q, target, mom.count, shift, field_nt)
         q, it, converged = _gauss_newton(q, root, prior)
         nit += it
         x = _from_unit(q, shift, field_nt)
@@ -492,40 +506,53 @@ def fit_eiv(b, r, *, start=None, sigma_r=None, robust=True, keep=None, correct=T
     e, u = residuals(x, b, r)
     grad = _field_gradient(x, b[kept], u[kept])
     dop = dilution(grad, field_nt)
-    held = _held(directions, shift, field_nt)
+    covariance, held = _sandwich(e[kept], grad, held_rows, field_nt)
     determined = (dop <= UNDETERMINED_DOP) & ~held
-    covariance = _sandwich(b[kept], r[kept], u[kept], grad)
     return Fit(x=x, keep=kept, sigma_m=sigma_m, sigma_r=sigma_r, covariance=covariance,
-               dop=dop, determined=determined, held=held, weak=directions, rounds=rounds,
+               dop=dop, determined=determined, held=held,
+               weak=np.zeros((0, 9)) if held_rows is None else held_rows, rounds=rounds,
                nit=nit, converged=converged, scale_cut=cut)
 
 
-def _held(directions, shift, field_nt):
-    """Parameters (as reported, c in the sensor's origin) that move along a direction the
-    prior holds."""
-    if directions.shape[1] == 0:
-        return np.zeros(9, bool)
-    # d x / d q: K is the same, c = c_unit * field + K shift.
-    jac = np.eye(9)
-    jac[6:9, 6:9] *= field_nt
-    jac[6, 0:3] = shift
-    jac[7, 3:5] = shift[1:]
-    jac[8, 5] = shift[2]
-    moved = jac @ directions
-    moved /= np.array([1.0] * 6 + [field_nt] * 3)[:, None]
-    return np.max(np.abs(moved), axis=1) > HELD_LOADING
+def _unit_jacobian(shift, field_nt):
+    """d q / d x: the centred, scaled parameters against the reported ones (K the same,
+    c_unit = (c - K shift) / field)."""
+    d = np.eye(9)
+    d[6:9, 6:9] /= field_nt
+    d[6, 0:3] = -shift / field_nt
+    d[7, 3:5] = -shift[1:] / field_nt
+    d[8, 5] = -shift[2] / field_nt
+    return d
 
 
-def _sandwich(b, r, u, grad):
-    """Covariance of the parameters from the data alone: H^-1 B H^-1, with H the
-    information of the field's gradient and B the spread of the per-sample scores
-    (gradient times residual). Directions the data do not determine come out huge."""
-    e = np.linalg.norm(u, axis=1) - r
+def _sandwich(e, grad, rows, field_nt):
+    """Covariance of the parameters (H^-1 B H^-1: H the information of the field's gradient,
+    B the spread of the per-sample scores, gradient times residual), within the directions
+    the data determine when a prior holds others (``rows``: the held directions, in the
+    reported parameters); and which parameters the prior holds: those a plausible error of
+    the isotropic start (K's entries by :data:`PRIOR_ERROR_K`, c by
+    :data:`PRIOR_ERROR_C` of the field) could move by more than their own standard
+    deviation."""
     scores = grad * e[:, None]
     scores -= scores.mean(axis=0)
     h = grad.T @ grad
+    spread = scores.T @ scores
+    if rows is None:
+        basis = np.eye(9)
+    else:
+        _, _, vt = np.linalg.svd(rows)
+        basis = vt[rows.shape[0]:].T                # the directions the data determine
     try:
-        hinv = np.linalg.inv(h)
+        inner = np.linalg.inv(basis.T @ h @ basis)
     except np.linalg.LinAlgError:
-        return np.full((9, 9), np.inf)
-    return hinv @ (scores.T @ scores) @ hinv
+        return np.full((9, 9), np.inf), np.ones(9, bool)
+    covariance = basis @ inner @ (basis.T @ spread @ basis) @ inner @ basis.T
+    if rows is None:
+        return covariance, np.zeros(9, bool)
+    # How far the prior's error reaches into each parameter: the constrained estimate
+    # moves by (I - basis inner basis^T h) times the error of the start.
+    reach = np.eye(9) - basis @ inner @ basis.T @ h
+    error = np.array([PRIOR_ERROR_K] * 6 + [PRIOR_ERROR_C * field_nt] * 3)
+    bias = np.abs(reach) @ error
+    held = bias > HELD_BIAS * np.sqrt(np.clip(np.diag(covariance), 0, None))
+    return covariance, held

@@ -76,7 +76,7 @@ class ScalarResult:
     kept: np.ndarray = None    # bool per sample: fitted (not screened out, not rejected)
     robust_cut_nT: float = float("inf")   # Talwar's cut-off on the residual
     noise: dict = field(default_factory=dict)   # estimated noise: magnetometer, reference
-    covariance: np.ndarray = None  # the sandwich covariance ("eiv")
+    covariance: np.ndarray = None  # the sandwich covariance
 
     @property
     def rejected(self):
@@ -444,11 +444,10 @@ def _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver, reference
     e, u = eiv.residuals(x, bk, rk)
     grad = eiv._field_gradient(x, bk, u)
     dop = eiv.dilution(grad, float(np.median(rk)))
-    held = np.zeros(9, bool) if fallback is None else fallback
+    covariance, held = eiv._sandwich(e, grad, fallback, float(np.median(rk)))
     determined = (dop <= eiv.UNDETERMINED_DOP) & ~held
     dof = max(bk.shape[0] - len(PARAMETERS), 1)
-    data_jac = best.jac[:bk.shape[0]]
-    uncertainties = _uncertainties(data_jac.T @ data_jac, best.cost, dof)
+    uncertainties = np.sqrt(np.clip(np.diag(covariance), 0, None))
     uncertainties = np.where(held, np.inf, uncertainties)
     warnings = _coverage_warnings(dop, determined, held)
     converged = best.status > 0
@@ -469,14 +468,15 @@ def _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver, reference
         status=best.status, solver=best.solver, at_bound=at_bound, dop=dop,
         determined=determined, held=held, kept=kept, robust_cut_nT=cut,
         noise={"magnetometer_nT": sigma, "reference_nT": sigma_r},
-        covariance=None)
+        covariance=covariance)
 
 
 def _constrained(best, b, r, lower, upper, identity, solver, nit):
     """The constrained fallback of the paper objective: the directions the coverage
     cannot see (scaled condition above :data:`POORLY_DETERMINED`) are held to the
     isotropic start by a prior that outweighs the data only along them. Returns the polish,
-    the parameters held (bool per parameter, or None) and the evaluations so far."""
+    the prior's rows (the held directions; None when there is no prior) and the
+    evaluations so far."""
     a = best.jac.T @ best.jac
     d = np.sqrt(np.diag(a))
     d = np.where(d > 0, d, 1.0)
@@ -487,14 +487,4 @@ def _constrained(best, b, r, lower, upper, identity, solver, nit):
     weak = vectors[:, values < values[-1] / POORLY_DETERMINED]
     rows = (weak.T * d) * np.sqrt(values[-1] * PRIOR_WEIGHT)
     best = _polish(best.x, b, r, lower, upper, prior=(rows, rows @ identity), solver=solver)
-    held = np.max(np.abs(weak), axis=1) > eiv.HELD_LOADING
-    return best, held, nit + best.nfev
-
-
-def _uncertainties(a, cost, dof):
-    """One standard deviation per parameter from J^T J; infinity where it is singular."""
-    try:
-        covariance = np.linalg.inv(a) * cost / dof
-    except np.linalg.LinAlgError:
-        return np.full(len(PARAMETERS), np.inf)
-    return np.sqrt(np.clip(np.diag(covariance), 0, None))
+    return best, rows, nit + best.nfev
