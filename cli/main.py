@@ -355,6 +355,9 @@ def _cmd_calibrate(args):
     summary = run.summary()
     rows = [["total-field RMS (nT)", f"{summary['rms_before_nT']:.2f}",
              f"{summary['rms_after_nT']:.2f}"]]
+    if summary["held_out"] is not None:
+        rows.append(["  on samples the fit did not see (nT)", "",
+                     f"{summary['held_out']['rms_held_out_nT']:.2f}"])
     heading = run.heading.as_dict(run.t)
     if "error_rms_deg" in heading:
         errors = heading["error_rms_deg"]
@@ -367,6 +370,10 @@ def _cmd_calibrate(args):
         align = heading["alignment"]
         print(f"heading offset {align['offset_deg']:+.2f} deg from {len(align['legs'])} "
               "straight, level legs (removed from the aligned headings)")
+    if run.held_out is None:
+        print(f"held out: not scored ({run.held_out_note})")
+    if run.coverage is not None:
+        print(f"coverage gate: {run.coverage.message}")
     for warning in run.warnings:
         print(f"warning: {warning}")
     print(f"report: {paths['markdown']}")
