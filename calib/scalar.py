@@ -442,9 +442,9 @@ def _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver, reference
     bk, rk = b[kept], r[kept]
     x = best.x
     e, u = eiv.residuals(x, bk, rk)
-    grad = eiv._field_gradient(x, bk, u)
-    dop = eiv.dilution(grad, float(np.median(rk)))
-    covariance, held = eiv._sandwich(e, grad, fallback, float(np.median(rk)))
+    info = eiv.information(x, bk, rk)
+    dop = eiv.dilution(info, float(np.median(rk)))
+    covariance, held = eiv._sandwich(info, fallback, float(np.median(rk)))
     determined = (dop <= eiv.UNDETERMINED_DOP) & ~held
     dof = max(bk.shape[0] - len(PARAMETERS), 1)
     uncertainties = np.sqrt(np.clip(np.diag(covariance), 0, None))
