@@ -770,6 +770,7 @@ def calib_heldout_timing(report):
     st = report["startup"]
     calls = st["first_calls_in_process"]
     settings = report["settings"]
+    blas = report["blas_threads"]["default_against_one"]
     lines += ["", f"Goal ≥ {first['goal_speedup']:g}× (median speed-up of the whole fit "
               f"against both pyswarms swarms, at both sizes): {verdicts}. "
               f"{first['repeats']} repeats each, "
@@ -786,7 +787,15 @@ def calib_heldout_timing(report):
               f"coverage, default errors, {first['flight']['rate']:g} Hz, seed "
               f"{first['flight']['seed']}, reference = true field + N(0, "
               f"{settings['reference_noise_nT']:g} nT); \"at the floor\": in-sample ratio ≤ "
-              f"{settings['floor_goal']:g} in every repeat.",
+              f"{settings['floor_goal']:g} in every repeat; the bench runs with "
+              f"OMP_NUM_THREADS={report['blas_threads']['variables']['OMP_NUM_THREADS']} "
+              f"(OpenBLAS under numpy and scipy on one thread).",
+              "- The BLAS threads left to their default (fresh interpreters, numba on one "
+              "thread, 2,000 samples, median): " + "; ".join(
+                  f"`objective=\"{o}\"` {ms(blas['default'][o]['median'], 1)} against "
+                  f"{ms(blas['one'][o]['median'], 1)} on one BLAS thread "
+                  f"({blas['default'][o]['median'] / blas['one'][o]['median']:.1f}×)"
+                  for o in ("eiv", "paper")) + ".",
               f"- Start-up, timed apart: `import pyswarms` {st['pyswarms_import_seconds']:.2f} "
               f"s, maglog's PSO module {st['maglog_pso_import_seconds_warm_cache']:.2f} s, "
               f"numba kernel's first call {st['numba_first_call_seconds_cold_cache']:.2f} s "

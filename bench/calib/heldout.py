@@ -19,11 +19,12 @@ second half against the true field; like-for-like swarm timing; log text to para
    For maglog's two objectives, the z-scores (estimate - truth) / reported 1 sigma over the
    seeds, per parameter (parameters held to the prior left out and counted), and the
    coverage gate's verdict (``determined`` false, ``held`` true) per coverage.
-2. Like-for-like timing on one thread: ``calibrate_scalar`` (default, and the paper's
-   objective) against pyswarms' ``GlobalBestPSO`` and ``LocalBestPSO`` (k = 3 ring) driving
-   ``_pso.cost_numba`` on the same samples, the same swarm (40 particles, 300 iterations,
-   bench/calib/run.py's constants), then the paper objective's polish; 2,000 and 20,000
-   samples; start-up (imports, numba's JIT) timed apart; whether each reached the floor.
+2. Like-for-like timing on one thread (numba and the BLAS): ``calibrate_scalar`` (default,
+   and the paper's objective) against pyswarms' ``GlobalBestPSO`` and ``LocalBestPSO`` (k = 3
+   ring) driving ``_pso.cost_numba`` on the same samples, the same swarm (40 particles, 300
+   iterations, bench/calib/run.py's constants), then the paper objective's polish; 2,000 and
+   20,000 samples; start-up (imports, numba's JIT) timed apart; whether each reached the floor;
+   and ``calibrate_scalar`` with the BLAS threads left to their default, for comparison.
 3. A one-hour (50 Hz, 180,000 samples) and a ten-hour flight from log text to parameters,
    stage by stage (read, parse_log, screening of the cesium and the samples when
    ``maglog.calib.screen`` exists, alignment of the cesium, calibrate_scalar). The logs are
@@ -35,10 +36,19 @@ Run from the repository root: ``.venv/bin/python bench/calib/heldout.py`` (``--h
 import argparse
 import hashlib
 import importlib.util
+import json
+import os
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
+
+#: One thread for the BLAS under numpy and scipy as well as for numba (set in main): OpenBLAS
+#: reads OMP_NUM_THREADS when OPENBLAS_NUM_THREADS is unset, and only before numpy's import.
+#: (What its default threads cost on this machine: :func:`blas_threads`.)
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+BLAS_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 import numba
 import numpy as np
@@ -399,6 +409,48 @@ def first_calls():
     return out
 
 
+BLAS_PROBE = """
+import json, sys, time
+import numpy as np
+from maglog.calib.scalar import calibrate_scalar
+from maglog.sim.stimulus.scenario import make_flight
+flight = make_flight(seconds=2000 / 50.0, coverage="uav", rate=50.0, seed=8)
+b, total = flight.b_meas[:2000], flight.total[:2000]
+r = total + np.random.default_rng(2000).normal(0.0, 0.05, total.size)
+out = {}
+for objective in ("eiv", "paper"):
+    calibrate_scalar(b, r, objective=objective)
+    seconds = []
+    for _ in range(int(sys.argv[1])):
+        t0 = time.perf_counter()
+        calibrate_scalar(b, r, objective=objective)
+        seconds.append(time.perf_counter() - t0)
+    out[objective] = seconds
+print(json.dumps(out))
+"""
+
+
+def blas_threads(repeats):
+    """``calibrate_scalar`` on the 2,000 timing samples in fresh interpreters: with the BLAS
+    threads left to their default (the variables unset) and with OMP_NUM_THREADS=1 (numba on
+    one thread in both)."""
+    out = {}
+    for name, value in (("default", None), ("one", "1")):
+        env = {k: v for k, v in os.environ.items() if k not in BLAS_VARIABLES}
+        env["NUMBA_NUM_THREADS"] = "1"
+        if value is not None:
+            env["OMP_NUM_THREADS"] = value
+        done = subprocess.run([sys.executable, "-c", BLAS_PROBE, str(repeats)],
+                              capture_output=True, text=True, env=env, check=True)
+        got = json.loads(done.stdout)
+        out[name] = {"OMP_NUM_THREADS": value,
+                     **{objective: summary(seconds) for objective, seconds in got.items()}}
+        print(f"BLAS threads {name}: " + ", ".join(
+            f"{objective} median {statistics.median(seconds) * 1e3:.1f} ms"
+            for objective, seconds in got.items()))
+    return out
+
+
 # --- 3. log text to parameters -------------------------------------------------------------
 
 def simulator_digest():
@@ -514,12 +566,16 @@ def main(argv=None):
                                        if isinstance(v, float)))
         rows, magyc, why = grid(range(args.seeds))
         times = timing((2000, 20000), args.repeats)
+        blas = blas_threads(args.repeats)
     grid_done = time.perf_counter()
     hours = [log_to_parameters(1, args.hour_repeats),
              log_to_parameters(args.long_hours, args.hour_repeats)]
     write_report(args.output, "calib_heldout", argv, load_start,
                  packages("numpy", "numba", "scipy", "pyswarms"),
                  numba_threading=threading,
+                 blas_threads={"variables": {name: os.environ.get(name)
+                                             for name in BLAS_VARIABLES},
+                               "default_against_one": blas},
                  settings={"coverages": COVERAGES, "error_models": ERROR_MODELS,
                            "noises_nT": NOISES, "seeds": args.seeds,
                            "flight_seconds": SECONDS, "rate_hz": RATE,
