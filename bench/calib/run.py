@@ -4,7 +4,9 @@ On seeded synthetic flights (sim.stimulus.scenario) with full-sphere, UAV-like (
 near-planar (±5°) attitude coverage at noise 5, 20 and 100 nT:
 
 - residual RMS of the total field as a ratio to the noise floor (the true parameters' own
-  residual), for maglog's PSO + LM;
+  residual), for maglog's PSO + LM on the paper's objective (``objective="paper"``, the
+  issue-5 measurement; the default errors-in-variables fit and the held-out scores are
+  bench/calib/heldout.py's);
 - scipy ``least_squares`` (from the identity) on the same objective, same ratio and time;
 - the PSO stage against ``pyswarms`` like for like: maglog's gbest beside pyswarms'
   ``GlobalBestPSO`` and maglog's ring beside its ``LocalBestPSO``, each on maglog's numba
@@ -290,9 +292,11 @@ def ellipsoid_section(flights):
     for key, (flight, floor) in flights.items():
         row = {"case": key}
         for method in ("algebraic", "constrained"):
+            # No gate: magyc has none, and the fit's accuracy is what is compared (the gate
+            # about the fitted centre refuses the UAV and near-planar flights).
             fit, seconds = best_of(lambda: fit_ellipsoid(flight.b_meas,
                                                          float(np.median(flight.total)),
-                                                         method=method), 3)
+                                                         method=method, gate=False), 3)
             if fit.success:
                 vectors = (flight.b_meas - fit.center) @ fit.W.T
                 row[f"maglog_{method}"] = dict(ellipsoid_metrics(vectors, fit.W, flight,
@@ -434,7 +438,7 @@ def hour_flight(repeats):
             b, r = parsed.mag.b[keep], reference[keep]
             t3 = time.perf_counter()
             with StageClock() as clock:
-                result = calibrate_scalar(b, r)
+                result = calibrate_scalar(b, r, objective="paper", kernel="numba")
             t4 = time.perf_counter()
             pso_seconds = sum(clock.seconds) if clock.seconds else None
             for name, value in (("read", t1 - t0), ("parse", t2 - t1), ("align", t3 - t2),
@@ -489,7 +493,8 @@ def main(argv=None):
                                  errors=ErrorModel(noise=noise))
             floor = floor_rms(flight)
             flights[f"{coverage}_{noise:g}"] = (flight, floor)
-            ours, t_ours = repeat(lambda: calibrate_scalar(flight.b_meas, flight.total), 3)
+            ours, t_ours = repeat(lambda: calibrate_scalar(flight.b_meas, flight.total,
+                                                           objective="paper"), 3)
             theirs, t_scipy = repeat(lambda: scipy_fit(flight.b_meas, flight.total), 3)
             scipy_rms = float(np.sqrt(np.mean(theirs.fun ** 2)))
             k, c = _pso.unpack(theirs.x)
@@ -509,7 +514,7 @@ def main(argv=None):
 
     flight = make_flight(coverage="uav", seconds=40, rate=50, seed=8)
     b, r = flight.b_meas[:2000], flight.total[:2000]
-    _, t_lm = repeat(lambda: calibrate_scalar(b, r, method="lm"), 20)
+    _, t_lm = repeat(lambda: calibrate_scalar(b, r, method="lm", objective="paper"), 20)
     print(f"deterministic (LM) fit of 2000 samples: best {min(t_lm) * 1e3:.2f} ms, median "
           f"{statistics.median(t_lm) * 1e3:.2f} ms")
 
