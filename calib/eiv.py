@@ -478,59 +478,29 @@ def fit_eiv(b, r, *, start=None, sigma_r=None, robust=True, keep=None, correct=T
     target = _to_unit(isotropic, shift, field_nt)
     kept = allowed.copy()
     sigma_m = 0.0
-    nit = 0
-    rounds = 0
-    converged = True
-    cut = np.inf
     q = None if start is None else _to_unit(np.asarray(start, float), shift, field_nt)
-    held_rows, prior = None, None
+    warnings = []
     for rounds in range(1, MAX_ROUNDS + 1):
         mom = moments(b, r, kept, shift=shift, scale=field_nt)
         s = mom.matrix(sigma_m if correct else 0.0, sigma_r if correct else 0.0)
         root = _root(s)
         if rounds == 1:
-            # Every plausible start (the given one, the linear solution, the isotropic
-            # one), polished; the best plausible end wins (the algebraic objective has a
-            # collapsed minimum, K -> 0, that a start far off may slide into).
-            candidates = [target.copy()]
-            linear = _linear_start(s, scale_guess)
-            if _plausible(linear, scale_guess):
-                candidates.insert(0, linear)
-            if q is not None and _plausible(q, scale_guess):
-                candidates.insert(0, q)
-            ends = []
-            for candidate in candidates:
-                held_rows, prior = _weak_prior(root, candidate, target, mom.count, shift,
-                                               field_nt)
-                end, it, ok = _gauss_newton(candidate, root, prior)
-                nit += it
-                cost = objective(end, s)
-                ends.append((not _plausible(end, scale_guess), cost, end, ok))
-            _, _, q, converged = min(ends, key=lambda item: item[:2])
+            q, nit, converged = _best_start(q, root, s, target, mom.count, shift, field_nt,
+                                            scale_guess)
         # The directions the coverage leaves to the prior, judged where the fit stands.
         held_rows, prior = _weak_prior(root, q, target, mom.count, shift, field_nt)
         q, it, converged = _gauss_newton(q, root, prior)
         nit += it
-        x = _from_unit(q, shift, field_nt)
-        e, u = residuals(x, b, r)
-        inside = e[kept]
-        centre = float(np.median(inside))
-        spread = 1.4826 * float(np.median(np.abs(inside - centre)))
-        cut = ROBUST_K * spread if robust and spread > 0 else np.inf
-        # Talwar's loss as a mask, and the magnetometer's noise from the kept residual.
-        new_kept = np.empty(n, dtype=np.bool_)
-        count, square_sum, gain_sum = _talwar(x, u, e, allowed, centre, cut, new_kept)
-        gain = gain_sum / max(count, 1)
-        variance = square_sum / max(count - 9, 1)
-        new_sigma = float(np.sqrt(max(variance - sigma_r ** 2, 0.0) / gain))
-        same_set = np.array_equal(new_kept, kept)
-        stable = same_set and (not correct or abs(new_sigma - sigma_m)
-                               <= 1e-3 * max(new_sigma, 1e-9))
+        new_kept, cut, new_sigma = _reweight(_from_unit(q, shift, field_nt), b, r, kept,
+                                             allowed, robust, sigma_r)
+        stable = np.array_equal(new_kept, kept) and (
+            not correct or abs(new_sigma - sigma_m) <= 1e-3 * max(new_sigma, 1e-9))
         kept, sigma_m = new_kept, new_sigma
         if stable:
             break
+    else:
+        warnings.append(f"the robust reweighting had not settled after {MAX_ROUNDS} rounds")
     x = _from_unit(q, shift, field_nt)
-    e, u = residuals(x, b, r)
     info = information(x, b, r, kept)
     dop = dilution(info, field_nt)
     covariance, held = _sandwich(info, held_rows, field_nt)
@@ -538,7 +508,43 @@ def fit_eiv(b, r, *, start=None, sigma_r=None, robust=True, keep=None, correct=T
     return Fit(x=x, keep=kept, sigma_m=sigma_m, sigma_r=sigma_r, covariance=covariance,
                dop=dop, determined=determined, held=held,
                weak=np.zeros((0, 9)) if held_rows is None else held_rows, rounds=rounds,
-               nit=nit, converged=converged, scale_cut=cut)
+               nit=nit, converged=converged, scale_cut=cut, warnings=warnings)
+
+
+def _best_start(given, root, s, target, count, shift, field_nt, scale_guess):
+    """Every plausible start (the given one, the linear solution, the isotropic one)
+    polished; the best plausible end wins: the algebraic objective has a collapsed minimum
+    (K -> 0) that a start far off may slide into. Returns (q, iterations, converged)."""
+    candidates = [target.copy()]
+    linear = _linear_start(s, scale_guess)
+    if _plausible(linear, scale_guess):
+        candidates.insert(0, linear)
+    if given is not None and _plausible(given, scale_guess):
+        candidates.insert(0, given)
+    ends, nit = [], 0
+    for candidate in candidates:
+        _, prior = _weak_prior(root, candidate, target, count, shift, field_nt)
+        end, it, ok = _gauss_newton(candidate, root, prior)
+        nit += it
+        ends.append((not _plausible(end, scale_guess), objective(end, s), end, ok))
+    _, _, q, converged = min(ends, key=lambda item: item[:2])
+    return q, nit, converged
+
+
+def _reweight(x, b, r, kept, allowed, robust, sigma_r):
+    """Talwar's loss as a mask about the median residual of the ``kept`` samples (cut at
+    :data:`ROBUST_K` robust standard deviations), and the magnetometer's noise from the
+    residual of those it keeps. Returns (new mask, cut-off in nT, noise in nT)."""
+    e, u = residuals(x, b, r)
+    inside = e[kept]
+    centre = float(np.median(inside))
+    spread = 1.4826 * float(np.median(np.abs(inside - centre)))
+    cut = ROBUST_K * spread if robust and spread > 0 else np.inf
+    new_kept = np.empty(len(b), dtype=np.bool_)
+    count, square_sum, gain_sum = _talwar(x, u, e, allowed, centre, cut, new_kept)
+    gain = gain_sum / max(count, 1)
+    variance = square_sum / max(count - 9, 1)
+    return new_kept, cut, float(np.sqrt(max(variance - sigma_r ** 2, 0.0) / gain))
 
 
 def _unit_jacobian(shift, field_nt):

@@ -388,7 +388,7 @@ def _fit_eiv(b, r, start, keep, robust, reference_noise):
     kept = fit.keep
     before = np.linalg.norm(b[kept], axis=1) - r[kept]
     cost = float(e[kept] @ e[kept])
-    warnings = _coverage_warnings(fit.dop, fit.determined, fit.held)
+    warnings = _coverage_warnings(fit.dop, fit.determined, fit.held) + list(fit.warnings)
     message = ("converged: adjusted least squares (errors in variables)" if fit.converged
                else "not converged: the adjusted least squares reached its iteration limit")
     if not fit.converged:
