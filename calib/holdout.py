@@ -53,9 +53,11 @@ def held_out(t, b, r, keep, fit, full_residual):
             return None, f"the {name} half has too few samples to fit ({int(train_mask.sum())})"
         try:
             residual = fit(train_mask)
-        except ValueError as error:
+        except (ValueError, np.linalg.LinAlgError) as error:
             return None, f"the {name} half alone cannot be fitted: {error}"
         e = residual(test_mask)
+        if not np.all(np.isfinite(e)):
+            return None, f"the {name} half's fit gives no finite calibration of the other"
         e_full = full_residual[test_mask]
         squares += float(e @ e)
         in_squares += float(e_full @ e_full)

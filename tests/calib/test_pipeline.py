@@ -498,3 +498,20 @@ def test_held_out_figures_are_in_the_report(flight, tmp_path):
     assert summary["coverage_gate"]["accepted"] is False
     text = (tmp_path / "report" / "report.md").read_text()
     assert "- held out: fitted on one half of the flight, scored on the other" in text
+
+
+def test_held_out_says_why_when_a_half_cannot_be_fitted(tmp_path):
+    # The second half of the flight is level: alone it cannot be fitted by the ellipsoid
+    # (its gate about the fitted centre refuses one side), so the held-out figure is not
+    # given, and the report says why instead.
+    flight = make_flight(coverage="full", seconds=60, seed=8)
+    half = len(flight.t) // 2
+    log = edit_log(flight.log(), pmag=set_axes(
+        lambda k, x, y, z: (x, y, abs(z)) if k >= half else (x, y, z)))
+    status, _, err = calibrate_log(tmp_path, log, "--method", "ellipsoid")
+    assert status == 0, err
+    summary = strict_json(tmp_path / "report" / "parameters.json")
+    assert summary["held_out"] is None
+    assert summary["held_out_note"].startswith("the first half alone cannot be fitted") or \
+        summary["held_out_note"].startswith("the second half alone cannot be fitted")
+    assert "- held out: not scored (" in (tmp_path / "report" / "report.md").read_text()
