@@ -918,6 +918,10 @@ BLOCKS = {
     "calib-lm": ("bench/results/calib_lm.json", calib_lm),
     "calib-mutation": ("bench/results/calib_mutation.json", calib_mutation),
     "allan-paper-c": ("bench/results/allan_paper_c.json", allan_paper_c),
+    "calib-heldout": ("bench/results/calib_heldout.json", calib_heldout),
+    "calib-heldout-z": ("bench/results/calib_heldout.json", calib_heldout_z),
+    "calib-heldout-timing": ("bench/results/calib_heldout.json", calib_heldout_timing),
+    "calib-heldout-hours": ("bench/results/calib_heldout.json", calib_heldout_hours),
 }
 
 
