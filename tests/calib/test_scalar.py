@@ -155,6 +155,8 @@ def test_bad_options():
     with pytest.raises(ValueError, match="Kernel must be one of moments, numba, numpy, not "
                                          "'cuda'"):
         calibrate_scalar(b, FIELD, kernel="cuda")
+    with pytest.raises(ValueError, match="Threads must be a positive integer or None, not 0"):
+        calibrate_scalar(b, FIELD, threads=0)
     with pytest.raises(ValueError, match="Objective must be one of eiv, paper, not 'ml'"):
         calibrate_scalar(b, FIELD, objective="ml")
     with pytest.raises(ValueError, match=r"keep must be one bool per sample \(50\)"):
@@ -201,3 +203,18 @@ def test_both_solvers_agree_on_the_same_cases():
         assert lm.rms == pytest.approx(trf.rms, rel=1e-6)
         np.testing.assert_allclose(lm.K, trf.K, atol=1e-6)
         np.testing.assert_allclose(lm.c, trf.c, atol=0.05)
+
+
+def test_blas_runs_on_the_threads_asked_for(monkeypatch):
+    from threadpoolctl import threadpool_info
+    from maglog.calib import scalar
+    seen = []
+    polish = scalar._polish
+
+    def spy(*args, **kwargs):
+        seen.append([i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"])
+        return polish(*args, **kwargs)
+    monkeypatch.setattr(scalar, "_polish", spy)
+    b, _, _ = synthetic(6, n=300)
+    calibrate_scalar(b, FIELD, objective="paper", method="lm")
+    assert seen and all(threads and set(threads) == {1} for threads in seen)
