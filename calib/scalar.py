@@ -255,6 +255,22 @@ def _swarm(b, r, lower, upper, *, kernel, seed, particles, iterations, pso_sampl
         best, _, nit, _ = _pso.pso_moments(s, lower / units, upper / units,
                                            particles=particles, iterations=iterations,
                                            seed=seed)
+        # The swarm ends near the surrogate's minimum, not on it, and often against the box
+        # in a weak direction. The search is finished on the same surrogate, still without
+        # visiting a sample: Gauss-Newton from the swarm's best and from the surrogate's
+        # linear solution, and the plausible end with the lowest surrogate cost wins (the
+        # swarm's best itself when none is plausible).
+        scale = float(np.median(r) / np.median(np.linalg.norm(b, axis=1)))
+        root = eiv._root(s)
+        ends = [(not eiv._plausible(best, scale), eiv.objective(best, s), best)]
+        for start in (best, eiv._linear_start(s, scale)):
+            if eiv._plausible(start, scale):
+                end, steps, _ = eiv._gauss_newton(start, root)
+                nit += steps
+                inside = np.all((end > lower / units) & (end < upper / units))
+                ends.append((not (inside and eiv._plausible(end, scale)),
+                             eiv.objective(end, s), end))
+        best = min(ends, key=lambda item: item[:2])[2]
         return best * units, nit
     cost_fn = _pso.cost_numba if kernel == "numba" else _pso.cost_numpy
     step = max(1, b.shape[0] // pso_samples)
@@ -451,6 +467,10 @@ def _robust_keep(e, allowed):
     return allowed & (np.abs(e - centre) <= cut), cut
 
 
+def _on_box(x, lower, upper):
+    return bool(np.any(np.isclose(x, lower) | np.isclose(x, upper)))
+
+
 def _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver, reference_noise):
     allowed = np.ones(len(b), bool) if keep is None else keep.copy()
     identity = np.array([scale, 0, 0, scale, 0, scale, 0, 0, 0], dtype=float)
@@ -460,9 +480,14 @@ def _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver, reference
     nit = 0
     for _ in range(eiv.MAX_ROUNDS):
         bk, rk = b[kept], r[kept]
-        # Polish every start and keep the best: a swarm can settle against the box in a
-        # poorly determined direction, where the identity start walks straight to it.
-        polished = [_polish(p, bk, rk, lower, upper, solver=solver) for p in starts]
+        # The swarm's best first; the identity too when that ends on the box or fails (a
+        # swarm can settle against the box in a poorly determined direction, where the
+        # identity walks straight to the minimum), and the better kept.
+        polished = [_polish(starts[0], bk, rk, lower, upper, solver=solver)]
+        if len(starts) > 1 and (polished[0].status <= 0 or np.any(polished[0].active)
+                                or _on_box(polished[0].x, lower, upper)
+                                or not np.isfinite(polished[0].cost)):
+            polished.append(_polish(starts[1], bk, rk, lower, upper, solver=solver))
         best = min(polished, key=lambda p: p.cost if np.isfinite(p.cost) else np.inf)
         nit += sum(p.nfev for p in polished)
         best, fallback, nit = _constrained(best, bk, rk, lower, upper, identity, solver, nit)
