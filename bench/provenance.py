@@ -896,6 +896,30 @@ def machine(report):
         "ll") + ["", "Tools: " + ", ".join(f"{k} {v}" for k, v in report["tools"].items()) + "."]
 
 
+def calib_parse(report):
+    rows = []
+    for key, label in (("one_hour", "one hour"), ("long", f"{report['linearity']['hours']} hours")):
+        r = report[key]
+        rows.append([label, thousands(r["samples"]), f"{r['log_bytes'] / 2**20:.1f} MiB",
+                     f"{r['wall']['best']:.3f} s", f"{r['wall']['median']:.3f} s",
+                     f"{r['cpu']['best']:.3f} s", str(r["bad_lines"])])
+    reference = report["per_line_reference_one_hour"]
+    goals = report["goals"]
+    lin = report["linearity"]
+    return table(["log", "samples", "size", "best", "median", "CPU (best)", "bad lines"], rows,
+                 "lrrrrrr") + [
+        "", f"The per-line reader on the hour: {reference['wall']['best']:.3f} s best "
+            f"({reference['speedup_best']:.1f}× slower), its result "
+            f"{'identical' if reference['identical_to_bulk'] else '**different**'}. "
+            f"{lin['hours']} hours take {lin['best_over_hour_best_times_hours']:.2f}× "
+            f"{lin['hours']} times the hour (best). Goals: the hour ≤ "
+            f"{goals['hour_seconds']:g} s "
+            f"({'met' if goals['hour_met_best'] else '**not met**'}), {lin['hours']} hours ≤ "
+            f"{goals['ten_hours_seconds']:g} s "
+            f"({'met' if goals['ten_hours_met_median'] else '**not met**'}, median); "
+            f"{report['one_hour']['wall']['repeats']} repeats each."]
+
+
 #: name -> (JSON, renderer)
 BLOCKS = {
     "machine": ("bench/results/synth.json", machine),
@@ -922,6 +946,7 @@ BLOCKS = {
     "calib-heldout-z": ("bench/results/calib_heldout.json", calib_heldout_z),
     "calib-heldout-timing": ("bench/results/calib_heldout.json", calib_heldout_timing),
     "calib-heldout-hours": ("bench/results/calib_heldout.json", calib_heldout_hours),
+    "calib-parse": ("bench/results/calib_parse.json", calib_parse),
 }
 
 
