@@ -141,8 +141,8 @@ def scipy_trf(b, r):
 
 def paper_polish(b, r, start):
     """maglog's polish of the paper objective (``objective="paper"``) from ``start``: the
-    same code calibrate_scalar runs after its swarm (least_squares from the start and from
-    the identity, the better kept; Talwar's robust rounds)."""
+    same code calibrate_scalar runs after its swarm (least_squares from the start, and from
+    the identity too when that ends on the box or fails; Talwar's robust rounds)."""
     lower, upper, scale = scalar._box(b, r)
     return scalar._fit_paper(b, r, start, None, True, lower, upper, scale, "lm", None)
 
