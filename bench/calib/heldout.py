@@ -34,6 +34,7 @@ Run from the repository root: ``.venv/bin/python bench/calib/heldout.py`` (``--h
 """
 
 import argparse
+import dataclasses
 import hashlib
 import importlib.util
 import json
@@ -103,15 +104,18 @@ def residual_rms(k, c, b, total):
                                  ** 2)))
 
 
-def verdict(k, c, b_fit, total_fit, b_test, total_test, floors):
-    """Held-out and in-sample ratios, collapse and reflection of one fit (K, c)."""
+def verdict(k, c, b_fit, total_fit, b_test, total_test, floors, clean_test):
+    """Held-out and in-sample ratios, the systematic error on the held-out half's attitudes
+    (the noise-free samples there: what the parameters themselves get wrong, in nT),
+    collapse and reflection of one fit (K, c)."""
     finite = bool(np.all(np.isfinite(k)) and np.all(np.isfinite(c)))
     if not finite:
-        return {"finite": False, "heldout": None, "insample": None, "collapse": True,
-                "reflection": False}
+        return {"finite": False, "heldout": None, "insample": None, "systematic_nT": None,
+                "collapse": True, "reflection": False}
     return {"finite": True,
             "heldout": residual_rms(k, c, b_test, total_test) / floors[1],
             "insample": residual_rms(k, c, b_fit, total_fit) / floors[0],
+            "systematic_nT": residual_rms(k, c, clean_test, total_test),
             "collapse": bool(np.min(np.abs(np.diag(k))) < COLLAPSE_DIAGONAL),
             "reflection": bool(np.linalg.det(k) < 0)}
 
@@ -205,17 +209,22 @@ def grid(seeds):
                     half = flight.total.size // 2
                     b, r, total = flight.b_meas[:half], r_all[:half], flight.total[:half]
                     b_test, total_test = flight.b_meas[half:], flight.total[half:]
+                    # The same attitudes without the sensor's noise (apply() adds none at
+                    # zero noise): what the parameters alone do there.
+                    clean_test = dataclasses.replace(errors, noise=0.0).apply(
+                        flight.b_earth[half:], np.random.default_rng(0))
                     floors = (residual_rms(k_true, c_true, b, total),
                               residual_rms(k_true, c_true, b_test, total_test))
                     key = case_key(coverage, model, noise, seed)
-                    halves[key] = (b, r, total, b_test, total_test, floors)
+                    halves[key] = (b, r, total, b_test, total_test, floors, clean_test)
                     row = {"case": key, "coverage": coverage, "errors": model,
                            "noise_nT": noise, "seed": seed, "fit_samples": half,
                            "test_samples": int(b_test.shape[0]),
                            "floor_fit_nT": floors[0], "floor_test_nT": floors[1],
                            "estimators": {}}
                     for name, (k, c, notes) in fit_all(b, r).items():
-                        got = verdict(k, c, b, total, b_test, total_test, floors)
+                        got = verdict(k, c, b, total, b_test, total_test, floors,
+                                      clean_test)
                         if name.startswith("maglog_"):
                             unc = notes["uncertainties"]
                             z = (notes["x"] - truth) / unc
@@ -237,19 +246,21 @@ def grid(seeds):
                     for name in ESTIMATORS[:-1]) + f" ({time.perf_counter() - started:.0f} s)")
     peers, why = magyc_fits({key: value[0] for key, value in halves.items()})
     for row in rows:
-        b, r, total, b_test, total_test, floors = halves[row["case"]]
+        b, r, total, b_test, total_test, floors, clean_test = halves[row["case"]]
         if peers is None:
             row["estimators"]["magyc_fang"] = {"not_run": why}
             continue
         fit = peers["cases"][row["case"]]["ellipsoid_fit_fang"]
         if "error" in fit:
             row["estimators"]["magyc_fang"] = {"error": fit["error"], "heldout": None,
-                                              "insample": None, "collapse": True,
-                                              "reflection": False, "finite": False}
+                                              "insample": None, "systematic_nT": None,
+                                              "collapse": True, "reflection": False,
+                                              "finite": False}
             continue
         k, c = fang_kc(fit, b, r)
         row["estimators"]["magyc_fang"] = dict(verdict(k, c, b, total, b_test, total_test,
-                                                       floors), seconds=fit["seconds"])
+                                                       floors, clean_test),
+                                               seconds=fit["seconds"])
     magyc = None if peers is None else {k: v for k, v in peers.items() if k != "cases"}
     return rows, magyc, why
 
@@ -275,7 +286,11 @@ def case_summaries(rows):
             sound = [g for g in got if g["finite"] and not g["collapse"]]
             held = [g["heldout"] for g in sound]
             ins = [g["insample"] for g in sound]
+            systematic = [g["systematic_nT"] for g in sound]
             one = {"heldout_worst": max(held, default=None),
+                   "systematic_worst_nT": max(systematic, default=None),
+                   "systematic_median_nT": (statistics.median(systematic) if systematic
+                                            else None),
                    "heldout_median": statistics.median(held) if held else None,
                    "insample_worst": max(ins, default=None),
                    "insample_median": statistics.median(ins) if ins else None,
