@@ -432,6 +432,172 @@ def _cmd_run(args):
                        + ", ".join(summary.failed))
 
 
+def _port_arg(text):
+    """``NAME=DEV`` (a channel's port) or ``DEV`` (the next channel's, in order)."""
+    import re
+    from .hil import CHANNEL_NAMES
+    name, sep, device = text.partition("=")
+    if sep and re.fullmatch(r"[A-Za-z_][\w-]*", name):
+        if name not in CHANNEL_NAMES:
+            raise argparse.ArgumentTypeError(
+                f"channel must be one of {', '.join(CHANNEL_NAMES)}, not {name!r}")
+        if not device:
+            raise argparse.ArgumentTypeError(f"no device after {name}= in {text!r}")
+        return name, device
+    if not text:
+        raise argparse.ArgumentTypeError("expected a device, not ''")
+    return None, text
+
+
+def _baud_assign_arg(text):
+    """``NAME=RATE``: a channel's baud rate."""
+    from .hil import BAUD_RANGE, CHANNEL_NAMES
+    name, sep, rate = text.partition("=")
+    if not sep or name not in CHANNEL_NAMES:
+        raise argparse.ArgumentTypeError(
+            f"expected NAME=RATE with NAME one of {', '.join(CHANNEL_NAMES)}, not {text!r}")
+    rate = rate.strip()
+    low, high = BAUD_RANGE
+    if not (rate.isascii() and rate.isdigit() and len(rate) <= 9 and low <= int(rate) <= high):
+        raise argparse.ArgumentTypeError(
+            f"a baud rate is an integer from {low} to {high}, not {rate!r}")
+    return name, int(rate)
+
+
+def _ports_by_channel(specs, names):
+    """{channel name: device} from ``--port`` values: named ones where they say, bare ones
+    on the remaining channels of ``names`` in order."""
+    named = {}
+    for name, device in specs:
+        if name is not None:
+            if name in named:
+                raise CliError(f"channel {name} is given two ports ({named[name]}, {device})")
+            named[name] = device
+    free = [n for n in names if n not in named]
+    bare = [device for name, device in specs if name is None]
+    if len(bare) > len(free):
+        raise CliError(f"{len(specs)} ports for {len(names)} channels ({', '.join(names)})")
+    named.update(zip(free, bare))
+    devices = list(named.values())
+    for device in devices:
+        if devices.count(device) > 1 and not device.startswith("loop://"):
+            raise CliError(f"{device}: given for two channels")
+    return {n: named[n] for n in names if n in named}
+
+
+def _open_ports(devices, bauds):
+    from .hil import HilError, open_port
+    ports = {}
+    try:
+        for name, device in devices.items():
+            ports[name] = open_port(device, bauds[name])
+    except HilError as error:
+        _close_ports(ports)
+        raise CliError(str(error)) from None
+    return ports
+
+
+def _close_ports(ports):
+    for port in ports.values():
+        try:
+            port.close()
+        except Exception:       # closing a port that went away: nothing left to do
+            pass
+
+
+def _cmd_replay(args):
+    from .hil import CHANNEL_NAMES, expected_counters, replay
+    from .run import RunError, load
+    devices = _ports_by_channel(args.port, CHANNEL_NAMES)
+    try:
+        stimulus = load(args.scenario)
+    except RunError as error:
+        raise CliError(str(error)) from None
+    system = stimulus.system
+    names = CHANNEL_NAMES[:len(system.channels)]
+    bauds = {name: int(round(config.baud)) for name, config in zip(names, system.channels)}
+    unknown = [n for n in devices if n not in names]
+    if unknown:
+        raise CliError(f"the scenario has no channel {unknown[0]} (it has {', '.join(names)})")
+    ports = _open_ports(devices, bauds)
+    index = {name: k for k, name in enumerate(names)}
+    for name in names:
+        if name not in ports:
+            _progress(f"{name}: no port given; its {len(system.channel_bytes(index[name])):,} "
+                      f"bytes are not sent")
+    _progress(f"replaying {system.until:.1f} s of scenario at {args.speed:g}x: about "
+              f"{_duration(system.until / args.speed)} ("
+              + ", ".join(f"{n} {devices[n]} at {bauds[n]} baud" for n in ports) + ")")
+    try:
+        result = replay(system, {index[n]: p for n, p in ports.items()}, speed=args.speed,
+                        baud_faults=args.baud_faults,
+                        on_press=lambda t: _progress(
+                            f"t = {t:.2f} s: the scenario's button press (press the "
+                            f"logger's button now)"))
+    finally:
+        _close_ports(ports)
+    rows = []
+    for k, sent in sorted((index[n], r) for n, r in result.channels.items()):
+        expect = expected_counters(system, k)
+        rows.append([sent.name, devices[sent.name], sent.baud, sent.bursts, sent.bytes,
+                     f"{sent.mean_late_s * 1e3:.2f}", f"{sent.max_late_s * 1e3:.2f}",
+                     sent.off_nominal, expect["kept"],
+                     sum(v for c, v in expect.items() if c != "kept")])
+    print(_table(["channel", "port", "baud", "bursts", "bytes", "mean late (ms)",
+                  "max late (ms)", "off-nominal bursts", "frames to keep", "to drop"], rows))
+    print(f"{result.wall_s:.2f} s for {result.scenario_s:.2f} s of scenario at "
+          f"{result.speed:g}x")
+    for sent in result.channels.values():
+        if sent.error:
+            raise CliError(f"the replay stopped: {sent.error}")
+    if result.interrupted:
+        raise KeyboardInterrupt
+
+
+def _cmd_record(args):
+    from .hil import CHANNEL_NAMES, DEFAULT_BAUDS, record
+    from ..sim.reference import COUNTER_NAMES
+    devices = _ports_by_channel(args.port, CHANNEL_NAMES)
+    bauds = dict(DEFAULT_BAUDS)
+    for name, rate in args.baud:
+        if name not in devices:
+            raise CliError(f"--baud {name}={rate}: channel {name} has no --port")
+        bauds[name] = rate
+    out = Path(args.output)
+    if out.is_dir():
+        raise CliError(f"{out}: is a folder; give the log's file name")
+    if out.exists() and not args.force:
+        raise CliError(f"{out}: exists; recording replaces it (give --force to do so)")
+    try:
+        log = open(out, "wb")
+    except OSError as error:
+        raise CliError(f"cannot write {_os_message(error, out)}") from None
+    with log:
+        try:
+            ports = _open_ports(devices, bauds)
+        except CliError:
+            log.close()
+            out.unlink()        # nothing recorded: leave no empty log behind
+            raise
+        _progress(f"recording to {out}: " + ", ".join(
+            f"{n} {devices[n]} at {bauds[n]} baud" for n in ports)
+            + (f" for {args.seconds:g} s" if args.seconds else "; Ctrl-C stops"))
+        try:
+            result = record(ports, log, seconds=args.seconds, max_frame=args.max_frame)
+        finally:
+            _close_ports(ports)
+    rows = [[r.name, devices[r.name], r.bytes] + [r.counters[c] for c in COUNTER_NAMES]
+            for r in result.channels.values()]
+    print(_table(["channel", "port", "bytes"] + list(COUNTER_NAMES), rows))
+    why = {"seconds": f"after {args.seconds:g} s", "interrupted": "on Ctrl-C",
+           "closed": "every port closed", "stopped": "stopped"}[result.reason]
+    print(f"{out}: {result.frames:,} frames, {result.log_bytes:,} bytes in "
+          f"{result.wall_s:.1f} s (ended {why})")
+    for r in result.channels.values():
+        if r.closed:
+            print(f"{r.name}: the port closed ({r.closed})")
+
+
 def _parser():
     from ..hw.frontend import DEFAULT_CHANNELS
     from ..sim.runners.frontend import BACKENDS
@@ -579,6 +745,43 @@ def _parser():
     demo.add_argument("--out", default="build/demo",
                       help="output folder (default: %(default)s)")
     demo.set_defaults(func=_cmd_demo)
+
+    replay_cmd = commands.add_parser(
+        "replay", help="stream a scenario's sensor bytes to real serial ports in real time")
+    replay_cmd.add_argument("scenario", nargs="?", default=None,
+                            help="scenario TOML file or built-in name (default: the "
+                                 "built-in default scenario)")
+    replay_cmd.add_argument("--port", type=_port_arg, action="append", required=True,
+                            metavar="[NAME=]DEV",
+                            help="a channel's port (NAME: mag, gps, cesium; DEV: a device "
+                                 "or a pyserial URL); without NAME= the next channel in "
+                                 "that order; a channel without a port is not sent")
+    replay_cmd.add_argument("--speed", type=_float_in(1e-3, 1e6), default=1.0,
+                            help="time runs this many times faster (default: %(default)s)")
+    replay_cmd.add_argument("--baud-faults", action="store_true",
+                            help="send a burst the scenario runs off its channel's rate at "
+                                 "that rate (the port switched for it) instead of the "
+                                 "nominal rate")
+    replay_cmd.set_defaults(func=_cmd_replay)
+
+    record_cmd = commands.add_parser(
+        "record", help="capture real sensors into a LOG.TXT with the logger's frame rules")
+    record_cmd.add_argument("--port", type=_port_arg, action="append", required=True,
+                            metavar="[NAME=]DEV",
+                            help="a channel's port (NAME: mag, gps, cesium); without NAME= "
+                                 "the next channel in that order")
+    record_cmd.add_argument("--baud", type=_baud_assign_arg, action="append", default=[],
+                            metavar="NAME=RATE",
+                            help="a channel's baud rate (default: mag 115200, gps 9600, "
+                                 "cesium 9600)")
+    record_cmd.add_argument("-o", "--output", required=True, help="the log file to write")
+    record_cmd.add_argument("--seconds", type=_float_in(0, 1e7, low_open=True), default=None,
+                            help="stop after this long (default: on Ctrl-C, or when every "
+                                 "port has closed)")
+    record_cmd.add_argument("--max-frame", type=_int_in(9, 4096), default=128,
+                            help="the filters' MAX_FRAME (default: %(default)s)")
+    record_cmd.add_argument("--force", action="store_true", help="replace an existing log")
+    record_cmd.set_defaults(func=_cmd_record)
     return parser
 
 
