@@ -537,7 +537,7 @@ def _cmd_replay(args):
     finally:
         _close_ports(ports)
     rows = []
-    for k, sent in sorted((index[n], r) for n, r in result.channels.items()):
+    for k, sent in sorted(result.channels.items()):
         expect = expected_counters(system, k)
         rows.append([sent.name, devices[sent.name], sent.baud, sent.bursts, sent.bytes,
                      f"{sent.mean_late_s * 1e3:.2f}", f"{sent.max_late_s * 1e3:.2f}",
@@ -589,8 +589,9 @@ def _cmd_record(args):
     rows = [[r.name, devices[r.name], r.bytes] + [r.counters[c] for c in COUNTER_NAMES]
             for r in result.channels.values()]
     print(_table(["channel", "port", "bytes"] + list(COUNTER_NAMES), rows))
-    why = {"seconds": f"after {args.seconds:g} s", "interrupted": "on Ctrl-C",
-           "closed": "every port closed", "stopped": "stopped"}[result.reason]
+    why = (f"after {args.seconds:g} s" if result.reason == "seconds" else
+           {"interrupted": "on Ctrl-C", "closed": "every port closed",
+            "stopped": "stopped"}[result.reason])
     print(f"{out}: {result.frames:,} frames, {result.log_bytes:,} bytes in "
           f"{result.wall_s:.1f} s (ended {why})")
     for r in result.channels.values():

@@ -357,3 +357,60 @@ def _run(argv):
         return main(argv)
     except SystemExit as exit:
         return exit.code
+
+
+def test_replay_command_maps_channels_and_says_what_is_left_out(short, capsys):
+    code = main(["replay", "short", "--port", "cesium=loop://", "--speed", "500"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "mag: no port given" in captured.err and "gps: no port given" in captured.err
+    assert captured.err.count("button press") == len(short.presses)
+    row = next(line for line in captured.out.splitlines() if line.startswith("cesium"))
+    kept = expected_counters(short, 2)["kept"]
+    assert f"{len(short.channel_bytes(2))}" in row.split() and f"{kept}" in row.split()
+    assert not any(line.startswith(("mag", "gps")) for line in captured.out.splitlines())
+
+
+def test_replay_with_baud_faults_switches_the_port_for_them(short):
+    """The scenario's gps line runs 1.5 % fast: with baud_faults every gps burst goes out at
+    its own rate, the port back at 9600 afterwards; the bytes are the same."""
+    port = serial.serial_for_url("loop://", timeout=0, baudrate=9600)
+    bursts = [b for b in short.channel_bursts(1) if b.start < 3.0]
+    assert all(b.baud is not None and b.baud != 9600 for b in bursts)
+    result = replay(short, {1: port}, speed=100.0, until=3.0, baud_faults=True)
+    assert port.read(10000) == b"".join(b.data for b in bursts)
+    assert result.channels[1].off_nominal == len(bursts)
+    assert port.baudrate == 9600
+
+
+def test_record_command_stops_on_ctrl_c_and_keeps_its_frames(tmp_path):
+    """``maglog record`` in its own process, interrupted by SIGINT: status 0, the frames so
+    far in the log, the counters printed."""
+    import signal
+    import subprocess
+    import sys
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    os.close(slave)
+    log = tmp_path / "LOG.TXT"
+    process = subprocess.Popen([sys.executable, "-m", "maglog.cli", "record", "--port",
+                                f"mag={path}", "-o", str(log)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_locked(path)
+        time.sleep(0.2)
+        os.write(master, _pmag(1) + _pmag(2, checksum=0) + _pmag(3))
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and log.read_bytes().count(b"\n") < 2:
+            time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=10)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        os.close(master)
+    assert process.returncode == 0, err
+    assert log.read_bytes() == _pmag(1) + _pmag(3)
+    assert "ended on Ctrl-C" in out
+    row = next(line for line in out.splitlines() if line.startswith("mag")).split()
+    assert row[3:5] == ["2", "1"]           # kept, checksum
