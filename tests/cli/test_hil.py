@@ -360,8 +360,18 @@ def _run(argv):
 
 
 def test_replay_command_maps_channels_and_says_what_is_left_out(short, capsys):
-    code = main(["replay", "short", "--port", "cesium=loop://", "--speed", "500"])
+    pty = Pty()
+    pty.port.close()            # the command opens it; a plain fd keeps the pair up
+    keep = os.open(pty.path, os.O_RDWR | os.O_NOCTTY)
+    pty.start_reading()
+    try:
+        code = main(["replay", "short", "--port", f"cesium={pty.path}", "--speed", "500"])
+        time.sleep(0.1)
+    finally:
+        os.close(keep)
+        pty.close()
     captured = capsys.readouterr()
+    assert pty.received() == short.channel_bytes(2)
     assert code == 0, captured.err
     assert "mag: no port given" in captured.err and "gps: no port given" in captured.err
     assert captured.err.count("button press") == len(short.presses)
@@ -374,11 +384,21 @@ def test_replay_command_maps_channels_and_says_what_is_left_out(short, capsys):
 def test_replay_with_baud_faults_switches_the_port_for_them(short):
     """The scenario's gps line runs 1.5 % fast: with baud_faults every gps burst goes out at
     its own rate, the port back at 9600 afterwards; the bytes are the same."""
-    port = serial.serial_for_url("loop://", timeout=0, baudrate=9600)
+    from serial.urlhandler.protocol_loop import Serial as Loop
+
+    class WatchedLoop(Loop):
+        """``loop://`` that notes the rate each write goes out at."""
+        writes = []
+
+        def write(self, data):
+            self.writes.append((self.baudrate, bytes(data)))
+            return super().write(data)
+    port = WatchedLoop("loop://", timeout=0, baudrate=9600)
     bursts = [b for b in short.channel_bursts(1) if b.start < 3.0]
-    assert all(b.baud is not None and b.baud != 9600 for b in bursts)
+    assert bursts and all(b.baud is not None and b.baud != 9600 for b in bursts)
     result = replay(short, {1: port}, speed=100.0, until=3.0, baud_faults=True)
     assert port.read(10000) == b"".join(b.data for b in bursts)
+    assert port.writes == [(round(b.baud), b.data) for b in bursts]
     assert result.channels[1].off_nominal == len(bursts)
     assert port.baudrate == 9600
 
