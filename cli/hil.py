@@ -231,7 +231,6 @@ def record(ports, out, *, kinds=None, seconds=None, max_frame=DEFAULT_MAX_FRAME,
             raise ValueError(f"channel must be one of {', '.join(kinds)}, not {name!r}")
     stop = stop or threading.Event()
     filters = {name: ReferenceFilter(kinds[name], max_frame) for name in ports}
-    written = dict.fromkeys(ports, 0)
     results = {name: ChannelRecord(name, kinds[name]) for name in ports}
     open_ports = dict(ports)
     frames = log_bytes = 0
@@ -246,14 +245,13 @@ def record(ports, out, *, kinds=None, seconds=None, max_frame=DEFAULT_MAX_FRAME,
         filters[name].feed_all(chunk)
         if b"\n" not in chunk and b"$" not in chunk:
             return                      # no candidate can have closed
-        kept = filters[name].result.frames[written[name]:]
+        kept = filters[name].take_frames()
         for frame in kept:
             out.write(frame)
             if on_frame is not None:
                 on_frame(name, frame)
         if kept:
             out.flush()
-            written[name] += len(kept)
             frames += len(kept)
             log_bytes += sum(map(len, kept))
 

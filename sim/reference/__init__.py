@@ -184,6 +184,7 @@ class ReferenceFilter:
         self._header = _HEADERS[self.kind]
         self._pending: list[str] = []  # received since the last judged candidate
         self._result = FilterResult()
+        self._taken = 0  # frames handed over by take_frames
 
     def feed(self, byte: int, error: bool = False) -> None:
         """One received byte and its error flag."""
@@ -207,6 +208,17 @@ class ReferenceFilter:
             counters=dict(self._result.counters),
             flushes=list(self._result.flushes),
         )
+
+    def take_frames(self) -> list[bytes]:
+        """The frames kept since the last call (or the start), in order, handed over: they
+        are no longer held, so a long stream read this way keeps no frame history (what
+        ``maglog record`` needs). ``result.frames`` then holds only frames not yet taken;
+        counters count on, and ``result.flushes`` still numbers kept frames from the start.
+        """
+        self._judge_pending()
+        frames, self._result.frames = self._result.frames, []
+        self._taken += len(frames)
+        return frames
 
     # --- judging --------------------------------------------------------------------------
 
@@ -276,7 +288,7 @@ class ReferenceFilter:
         if outcome != KEPT:
             return
         if self._raises_flush(content.removesuffix(_CR)):
-            self._result.flushes.append(len(self._result.frames))
+            self._result.flushes.append(self._taken + len(self._result.frames))
         self._result.frames.append((_START + content + _LF).encode("ascii"))
 
 

@@ -345,6 +345,23 @@ def test_input_forms_agree() -> None:
     assert run("nmea", iter(stream)) == expected
 
 
+def test_take_frames_hands_over_each_frame_once_and_keeps_none() -> None:
+    stream = GGA + VTG[:-3] + ZDA + GGA + VTG + GGA[:20]
+    batch = run(Kind.NMEA, stream)
+    taker = ReferenceFilter(Kind.NMEA)
+    taken = []
+    for k in range(0, len(stream), 7):          # chunks that split frames
+        taker.feed_all(stream[k:k + 7])
+        taken += taker.take_frames()
+        assert taker.result.frames == []
+    assert taken == batch.frames == [GGA, ZDA, GGA, VTG]
+    assert taker.result.counters == batch.counters
+    # Flushes number kept frames from the start, taken or not.
+    assert taker.result.flushes == batch.flushes == [0, 2]
+    taker.feed_all(GGA[20:])
+    assert taker.take_frames() == [GGA] and taker.result.flushes == [0, 2, 4]
+
+
 def test_streaming_equals_batch_and_open_frame_is_pending() -> None:
     stream = GGA + VTG[:-3] + ZDA + GGA[:20]
     incremental = ReferenceFilter(Kind.NMEA)
