@@ -2,9 +2,9 @@
 
 from amaranth import *
 from amaranth.lib import stream, wiring
-from amaranth.lib.fifo import SyncFIFOBuffered
+from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
-from amaranth.utils import ceil_log2, exact_log2
+from amaranth.utils import exact_log2
 
 from .arch import sd as arch_sd
 from .frame_fifo import FrameByte
@@ -117,31 +117,30 @@ class RingBuffer(wiring.Component):
         lanes = g.data_width // 8
         lane_bits = exact_log2(lanes)
         bits = exact_log2(self.capacity) + 1
-        mask = self.capacity - 1
+        sector_bits = exact_log2(arch_sd.BLOCK_BYTES)
+        sbits = bits - sector_bits             # a pointer counted in sectors
         sector_words = arch_sd.BLOCK_BYTES // lanes
+        word_bits = exact_log2(sector_words)
         port = self.dma
 
+        # Pointers modulo twice the capacity (the top bit tells full from empty). The read
+        # pointer only ever moves by whole sectors, so it is kept in sectors.
         wr = Signal(bits)          # next byte to write (tentative)
         commit = Signal(bits)      # end of the last whole frame
-        rd = Signal(bits)          # first byte not yet released
+        rd = Signal(sbits)         # first sector not yet released
         dropping = Signal()        # skipping the rest of a frame that did not fit
 
-        m.d.comb += port.level.eq(commit - rd)
+        # Committed bytes not yet released: the low bits of `commit` as they are.
+        m.d.comb += port.level.eq(Cat(commit[:sector_bits], commit[sector_bits:] - rd))
         with m.If(port.level > port.high_water):
             m.d.sync += port.high_water.eq(port.level)
 
-        # Write side: a byte per word write, with only its lane enabled.
-        write_req = Signal(request_layout(g))
+        # Write side: a byte per word write, with only its lane enabled. Full: the write
+        # pointer is the read pointer plus the capacity, i.e. equal to it but for the top bit.
         write_valid = Signal()
         write_taken = Signal()
         full = Signal()
-        m.d.comb += [
-            full.eq((wr - rd)[:bits] == self.capacity),
-            write_req.write.eq(1),
-            write_req.addr.eq((wr & mask) >> lane_bits),
-            write_req.data.eq(Cat([self.i.payload.data] * lanes)),
-            write_req.mask.eq(Const(1, lanes) << wr[:lane_bits] if lane_bits else 1),
-        ]
+        m.d.comb += full.eq(wr == Cat(C(0, sector_bits), rd ^ (1 << (sbits - 1))))
         with m.If(self.i.valid):
             with m.If(dropping):
                 m.d.comb += self.i.ready.eq(1)
@@ -160,68 +159,83 @@ class RingBuffer(wiring.Component):
                         m.d.sync += [commit.eq(wr + 1), port.kept.eq(port.kept + 1)]
 
         with m.If(port.release):
-            m.d.sync += rd.eq(rd + (port.release_sectors << exact_log2(arch_sd.BLOCK_BYTES)))
+            m.d.sync += rd.eq(rd + port.release_sectors)
         # Clear wins over a write and a release in the same cycle (the firmware clears only
         # with no frame coming in and no sector being read).
         with m.If(port.clear):
             m.d.sync += [wr.eq(0), commit.eq(0), rd.eq(0), dropping.eq(0)]
 
-        # Read side: word reads into a sector FIFO, as many as it has room for.
-        m.submodules.words = words = SyncFIFOBuffered(width=g.data_width, depth=sector_words)
-        base = Signal(bits)
-        issued = Signal(range(sector_words + 1))
-        in_flight = Signal(range(sector_words + 1))
-        out_count = Signal(range(arch_sd.BLOCK_BYTES + 1))
+        # Read side: a sector's words, read one a clock, into a sector buffer (one M9K); its
+        # bytes leave as their words have arrived. A sector's 512 bytes always all go out, so
+        # the buffer is empty again at the start of the next.
+        m.submodules.words = words = Memory(shape=g.data_width, depth=sector_words, init=[])
+        w_port = words.write_port()
+        r_port = words.read_port()
+        sector = Signal(sbits, reset_less=True)     # the sector read, after the read pointer
+        base = Signal(sbits, reset_less=True)       # the sector read, in the ring
+        issued = Signal(word_bits + 1)              # words asked of the controller
+        arrived = Signal(word_bits + 1)             # words in the buffer
+        arrived_before = Signal(word_bits + 1)      # ... as the read port saw the buffer
+        out_count = Signal(sector_bits)             # bytes out (back to 0 after the last)
         read_valid = Signal()
         read_taken = Signal()
         with m.If(port.read_start & ~port.reading):
             m.d.sync += [
                 port.reading.eq(1),
-                base.eq(rd + (port.read_sector << exact_log2(arch_sd.BLOCK_BYTES))),
-                issued.eq(0), out_count.eq(0),
+                sector.eq(port.read_sector),
+                base.eq(rd + port.read_sector),
+                issued.eq(0), arrived.eq(0),
             ]
-        room = Signal()
-        m.d.comb += [
-            room.eq(words.level + in_flight < sector_words),
-            read_valid.eq(port.reading & (issued < sector_words) & room),
-        ]
+        m.d.comb += read_valid.eq(port.reading & ~issued[word_bits])
         with m.If(read_taken):
             m.d.sync += issued.eq(issued + 1)
-        arrived = self.mem_data.valid
-        m.d.comb += [words.w_en.eq(arrived), words.w_data.eq(self.mem_data.payload)]
-        m.d.sync += in_flight.eq(in_flight + read_taken - arrived)
-
-        # The controller's port: writes first (they are few), then sector reads.
-        read_req = Signal(request_layout(g))
+        with m.If(self.mem_data.valid):
+            m.d.sync += arrived.eq(arrived + 1)
+        m.d.sync += arrived_before.eq(arrived)
+        with m.If(port.read_start & ~port.reading):
+            m.d.sync += arrived_before.eq(0)
         m.d.comb += [
-            read_req.write.eq(0),
-            read_req.addr.eq(((base & mask) >> lane_bits) + issued),
+            w_port.addr.eq(arrived[:word_bits]),
+            w_port.data.eq(self.mem_data.payload),
+            w_port.en.eq(self.mem_data.valid),
         ]
-        with m.If(write_valid):
-            m.d.comb += [self.mem.valid.eq(1), self.mem.payload.eq(write_req),
-                         write_taken.eq(self.mem.ready)]
-        with m.Elif(read_valid):
-            m.d.comb += [self.mem.valid.eq(1), self.mem.payload.eq(read_req),
-                         read_taken.eq(self.mem.ready)]
 
-        # Bytes out, low lane first; bytes past the committed end are padding.
-        lane = Signal(range(max(lanes, 2)))
-        position = Signal(bits)
-        m.d.comb += position.eq(base + out_count)
-        committed_byte = (position - rd)[:bits] < (commit - rd)[:bits]
-        byte = words.r_data.word_select(lane, 8) if lanes > 1 else words.r_data
+        # The controller's port: writes first (they are few), then sector reads. Byte
+        # addresses within the ring, in words.
+        m.d.comb += self.mem.payload.write.eq(write_valid)
+        with m.If(write_valid):
+            m.d.comb += [self.mem.valid.eq(1), write_taken.eq(self.mem.ready),
+                         self.mem.payload.addr.eq(wr[lane_bits:bits - 1])]
+        with m.Elif(read_valid):
+            m.d.comb += [self.mem.valid.eq(1), read_taken.eq(self.mem.ready),
+                         self.mem.payload.addr.eq(Cat(issued[:word_bits], base[:sbits - 1]))]
         m.d.comb += [
-            port.data.valid.eq(port.reading & words.r_rdy),
+            self.mem.payload.data.eq(Cat([self.i.payload.data] * lanes)),
+            self.mem.payload.mask.eq(Const(1, lanes) << wr[:lane_bits] if lane_bits else 1),
+        ]
+
+        # Bytes out, low lane first; bytes past the committed end are padding. The read port
+        # is given the word of the next byte (its data come a clock later), which has
+        # arrived if the buffer held it a clock ago.
+        word = out_count[lane_bits:]
+        step = port.data.valid & port.data.ready
+        next_word = Signal(word_bits)
+        m.d.comb += next_word.eq(word)
+        if lane_bits:
+            with m.If(step & out_count[:lane_bits].all()):
+                m.d.comb += next_word.eq(word + 1)
+        else:
+            with m.If(step):
+                m.d.comb += next_word.eq(word + 1)
+        m.d.comb += r_port.addr.eq(next_word)
+        committed_byte = Cat(out_count, sector) < port.level
+        byte = r_port.data.word_select(out_count[:lane_bits], 8) if lanes > 1 else r_port.data
+        m.d.comb += [
+            port.data.valid.eq(port.reading & (arrived_before != word)),
             port.data.payload.eq(Mux(committed_byte, byte, 0)),
         ]
-        with m.If(port.data.valid & port.data.ready):
+        with m.If(step):
             m.d.sync += out_count.eq(out_count + 1)
-            if lanes > 1:
-                m.d.sync += lane.eq(lane + 1)
-            with m.If((lane == lanes - 1) if lanes > 1 else C(1)):
-                m.d.comb += words.r_en.eq(1)
-                if lanes > 1:
-                    m.d.sync += lane.eq(0)
             with m.If(out_count == arch_sd.BLOCK_BYTES - 1):
                 m.d.sync += port.reading.eq(0)
 
