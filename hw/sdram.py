@@ -114,6 +114,12 @@ class SdramController(wiring.Component):
         next_cmd = Signal(3)
         m.d.comb += next_cmd.eq(arch.Command.NOP)
         m.d.sync += [cmd.eq(next_cmd), pins.cs_n.eq(0)]
+        # Address, bank and write data: pure datapath (they mean something only with a
+        # command), so without reset.
+        a = Signal(g.address_bits, reset_less=True)
+        ba = Signal(g.bank_bits, reset_less=True)
+        dq_o = Signal(g.data_width, reset_less=True)
+        m.d.comb += [pins.a.eq(a), pins.ba.eq(ba), pins.dq_o.eq(dq_o)]
 
         # Address fields of the request.
         req = self.i.payload
@@ -121,54 +127,59 @@ class SdramController(wiring.Component):
         bank = req.addr[g.column_bits:g.column_bits + g.bank_bits]
         row = req.addr[g.column_bits + g.bank_bits:]
 
-        # Per-bank open row and timers (clocks since the events that constrain the next).
+        # Per-bank open row (meaningful only while its `open_` bit is set, so without reset).
         open_ = Signal(g.banks)
-        open_row = Array(Signal(g.row_bits, name=f"open_row{b}") for b in range(g.banks))
-        limit = max(t_ras, t_rc, t_wr, t_rp) + 1
-        since_act = Array(Signal(range(limit + 1), init=limit, name=f"since_act{b}")
-                          for b in range(g.banks))
-        since_wr = Array(Signal(range(limit + 1), init=limit, name=f"since_wr{b}")
+        open_row = Array(Signal(g.row_bits, name=f"open_row{b}", reset_less=True)
                          for b in range(g.banks))
-        since_pre = Array(Signal(range(limit + 1), init=limit, name=f"since_pre{b}")
-                          for b in range(g.banks))
-        for b in range(g.banks):
-            for timer in (since_act[b], since_wr[b], since_pre[b]):
-                with m.If(timer < limit):
-                    m.d.sync += timer.eq(timer + 1)
+        # Clocks since the last ACTIVE, WRITE and PRECHARGE to any bank (saturating): each
+        # rule is kept for every bank at once, which is never sooner than per bank (and
+        # covers tRRD between banks as well).
+        limit = max(t_ras, t_rc, t_wr, t_rp)
+        since_act = Signal(range(limit + 1), init=limit)
+        since_wr = Signal(range(limit + 1), init=limit)
+        since_pre = Signal(range(limit + 1), init=limit)
+        for timer in (since_act, since_wr, since_pre):
+            with m.If(timer != limit):
+                m.d.sync += timer.eq(timer + 1)
 
         # A write must not drive DQ while the chip still drives data for an earlier read.
         turnaround = self.cas_latency + 1
         since_read = Signal(range(turnaround + 1), init=turnaround)
-        with m.If(since_read < turnaround):
+        with m.If(since_read != turnaround):
             m.d.sync += since_read.eq(since_read + 1)
 
-        # Refresh timer.
+        # Refresh timer: a tick every `refresh_every` + 1 clocks (it also times power-up).
         refresh_count = Signal(range(refresh_every + 1))
+        refresh_tick = Signal()
         refresh_due = Signal()
+        m.d.comb += refresh_tick.eq(refresh_count == refresh_every)
         m.d.sync += refresh_count.eq(refresh_count + 1)
-        with m.If(refresh_count == refresh_every):
+        with m.If(refresh_tick):
             m.d.sync += [refresh_count.eq(0), refresh_due.eq(1)]
+        # Power-up: whole refresh periods that cover it (the first tick is a whole period
+        # after reset).
+        power_up_ticks = -(-power_up // (refresh_every + 1))
 
         # Read data returns CAS latency clocks after the chip sees the READ, which is one
         # clock after it is decided here; it is sampled into a register, one more.
         latency = self.cas_latency + 2
         read_pipe = Signal(latency)
-        dq_in = Signal(g.data_width)
+        dq_in = Signal(g.data_width, reset_less=True)
         m.d.sync += [dq_in.eq(pins.dq_i), read_pipe.eq(Cat(C(0, 1), read_pipe[:-1]))]
         m.d.comb += [self.o.valid.eq(read_pipe[-1]), self.o.payload.eq(dq_in)]
 
-        wait = Signal(range(max(power_up, t_rfc, t_rp, t_rcd, t_mrd, t_rc, t_ras) + 2))
+        wait = Signal(range(max(t_rfc, t_rp, t_rcd, t_mrd, t_rc, t_ras) + 1))
         after_wait = Signal(_State)
-        init_refreshes = Signal(range(t.init_refreshes + 1))
+        init_count = Signal(range(max(t.init_refreshes, power_up_ticks) + 1))
         state = Signal(_State)
         m.d.comb += self.ready.eq(state.as_value() >= _State.IDLE.value)
 
-        def command(c, *, ba=None, a=None):
+        def command(c, *, ba_=None, a_=None):
             m.d.comb += next_cmd.eq(c)
-            if ba is not None:
-                m.d.sync += pins.ba.eq(ba)
-            if a is not None:
-                m.d.sync += pins.a.eq(a)
+            if ba_ is not None:
+                m.d.sync += ba.eq(ba_)
+            if a_ is not None:
+                m.d.sync += a.eq(a_)
 
         def wait_then(clocks_, then):
             # `clocks_` clocks from this command to the next (the command's own included).
@@ -182,27 +193,29 @@ class SdramController(wiring.Component):
             with m.Case(_State.POWER_UP):
                 # Waits with CKE high and NOPs for the power-up time.
                 m.d.sync += pins.cke.eq(1)
-                wait_then(power_up, _State.INIT_PRE)
+                with m.If(refresh_tick):
+                    m.d.sync += init_count.eq(init_count + 1)
+                    with m.If(init_count == power_up_ticks - 1):
+                        m.d.sync += [init_count.eq(0), state.eq(_State.INIT_PRE)]
 
             with m.Case(_State.INIT_PRE):
                 # Precharges all banks.
-                command(arch.Command.PRECHARGE, a=1 << arch.A10)
-                m.d.sync += init_refreshes.eq(0)
+                command(arch.Command.PRECHARGE, a_=1 << arch.A10)
                 wait_then(t_rp, _State.INIT_REF)
 
             with m.Case(_State.INIT_REF):
                 # Issues the initialisation's auto refreshes.
                 command(arch.Command.REFRESH)
-                m.d.sync += init_refreshes.eq(init_refreshes + 1)
-                with m.If(init_refreshes == t.init_refreshes - 1):
+                m.d.sync += init_count.eq(init_count + 1)
+                with m.If(init_count == t.init_refreshes - 1):
                     wait_then(t_rfc, _State.INIT_MODE)
                 with m.Else():
                     wait_then(t_rfc, _State.INIT_REF)
 
             with m.Case(_State.INIT_MODE):
                 # Loads the mode register: burst length 1, CAS latency.
-                command(arch.Command.LOAD_MODE, ba=0,
-                        a=arch.mode_register(cas_latency=self.cas_latency))
+                command(arch.Command.LOAD_MODE, ba_=0,
+                        a_=arch.mode_register(cas_latency=self.cas_latency))
                 wait_then(t_mrd, _State.IDLE)
 
             with m.Case(_State.IDLE):
@@ -215,14 +228,14 @@ class SdramController(wiring.Component):
                 with m.Elif(self.i.valid):
                     bank_open = open_.bit_select(bank, 1)
                     with m.If(bank_open & (open_row[bank] == row) &
-                              (~req.write | (since_read >= turnaround))):
+                              (~req.write | (since_read == turnaround))):
                         # The row is open: the access goes out now.
                         m.d.comb += self.i.ready.eq(1)
-                        m.d.sync += [pins.ba.eq(bank), pins.a.eq(column)]
+                        m.d.sync += [ba.eq(bank), a.eq(column)]
                         with m.If(req.write):
                             m.d.comb += next_cmd.eq(arch.Command.WRITE)
-                            m.d.sync += [pins.dq_o.eq(req.data), pins.dq_oe.eq(1),
-                                         pins.dqm.eq(~req.mask), since_wr[bank].eq(0)]
+                            m.d.sync += [dq_o.eq(req.data), pins.dq_oe.eq(1),
+                                         pins.dqm.eq(~req.mask), since_wr.eq(0)]
                         with m.Else():
                             m.d.comb += next_cmd.eq(arch.Command.READ)
                             m.d.sync += [read_pipe[0].eq(1), since_read.eq(0)]
@@ -235,25 +248,15 @@ class SdramController(wiring.Component):
 
             with m.Case(_State.PRECHARGE):
                 # Closes rows: all banks for a refresh, else the requested bank; waits for
-                # tRAS since its ACTIVE and tWR since its last write.
-                all_ = refresh_due
-                ok = Signal()
-                with m.If(all_):
-                    m.d.comb += ok.eq(Cat((~open_[b]) | ((since_act[b] >= t_ras) &
-                                                        (since_wr[b] >= t_wr))
-                                          for b in range(g.banks)).all())
-                with m.Else():
-                    m.d.comb += ok.eq((since_act[bank] >= t_ras) & (since_wr[bank] >= t_wr))
-                with m.If(ok):
-                    with m.If(all_):
-                        command(arch.Command.PRECHARGE, a=1 << arch.A10)
-                        m.d.sync += open_.eq(0)
-                        for b in range(g.banks):
-                            m.d.sync += since_pre[b].eq(0)
+                # tRAS since the last ACTIVE and tWR since the last write.
+                with m.If((since_act >= t_ras) & (since_wr >= t_wr)):
+                    with m.If(refresh_due):
+                        command(arch.Command.PRECHARGE, a_=1 << arch.A10)
+                        m.d.sync += [open_.eq(0), since_pre.eq(0)]
                         wait_then(t_rp, _State.REFRESH)
                     with m.Else():
-                        command(arch.Command.PRECHARGE, ba=bank, a=0)
-                        m.d.sync += [open_.bit_select(bank, 1).eq(0), since_pre[bank].eq(0)]
+                        command(arch.Command.PRECHARGE, ba_=bank, a_=0)
+                        m.d.sync += [open_.bit_select(bank, 1).eq(0), since_pre.eq(0)]
                         wait_then(t_rp, _State.ACTIVATE)
 
             with m.Case(_State.REFRESH):
@@ -263,13 +266,14 @@ class SdramController(wiring.Component):
                 wait_then(t_rfc, _State.IDLE)
 
             with m.Case(_State.ACTIVATE):
-                # Opens the requested row, once tRC since the bank's last ACTIVE has passed.
+                # Opens the requested row, once tRC since the last ACTIVE and tRP since the
+                # last PRECHARGE have passed.
                 with m.If(refresh_due):
                     m.d.sync += state.eq(_State.IDLE)
-                with m.Elif((since_act[bank] >= t_rc) & (since_pre[bank] >= t_rp)):
-                    command(arch.Command.ACTIVE, ba=bank, a=row)
+                with m.Elif((since_act >= t_rc) & (since_pre >= t_rp)):
+                    command(arch.Command.ACTIVE, ba_=bank, a_=row)
                     m.d.sync += [open_.bit_select(bank, 1).eq(1), open_row[bank].eq(row),
-                                 since_act[bank].eq(0)]
+                                 since_act.eq(0)]
                     wait_then(t_rcd, _State.IDLE)
 
             with m.Case(_State.WAIT):
