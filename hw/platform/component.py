@@ -145,7 +145,7 @@ def c_header(component, *, prefix="maglog"):
 
 
 def _readme(component):
-    clk_freq = _clk_freq(component)
+    clk_freq = int(round(_clk_freq(component)))
     return f"""maglog logger: Platform Designer component ({TOPLEVEL_NAME})
 {'=' * (48 + len(TOPLEVEL_NAME))}
 
@@ -158,7 +158,7 @@ Adding it to a NIOS II system
   1. Tools > Options > IP Search Locations (or a project-level IP search path): add this
      folder (or copy it under the project folder, where Platform Designer also looks).
   2. Refresh the IP Catalog; "maglog logger" is in the group "maglog". Add it.
-  3. Connect: clock <- the system clock ({clk_freq:g} Hz, the clock the gateware was
+  3. Connect: clock <- the system clock ({clk_freq} Hz, the clock the gateware was
      generated for; regenerate with --clk-freq for another), reset <- the system reset,
      avs <- the NIOS II data_master. Export the conduits uart, sd, sdram, led and button
      to the top level and wire them to the pins (sd and sdram carry separate output,
