@@ -723,6 +723,9 @@ def _parser():
                           "then PATH)")
     res.set_defaults(func=_cmd_hdl_resources)
 
+    from .hdl_component import register as register_component
+    register_component(hdl_commands)
+
     card = commands.add_parser("card", help="card images")
     card_commands = card.add_subparsers(dest="card_command", metavar="WHAT", required=True)
     card_format = card_commands.add_parser(
