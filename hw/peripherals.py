@@ -33,13 +33,6 @@ def _check_frequency(clk_freq):
         raise ValueError(f"Clock frequency must be a positive number, not {clk_freq!r}")
 
 
-def _cycles(clk_freq, seconds, what):
-    """Clock cycles in ``seconds`` (at least one)."""
-    if not isinstance(seconds, (int, float)) or isinstance(seconds, bool) or seconds <= 0:
-        raise ValueError(f"{what} must be a positive number of seconds, not {seconds!r}")
-    return max(1, round(clk_freq * seconds))
-
-
 def _millisecond_prescaler(clk_freq):
     _check_frequency(clk_freq)
     if clk_freq < MILLIS_PER_SECOND:
@@ -90,31 +83,111 @@ class RWStrobed(csr.FieldAction):
 
 
 class _CsrComponent(wiring.Component):
-    """A component whose registers sit behind its own CSR bridge."""
+    """A component whose registers sit behind a lean CSR multiplexer of its own.
+
+    Each register is one bus word, so no shadow registers are needed (amaranth-soc's
+    ``csr.Multiplexer`` keeps a read and a write shadow as wide as the widest register, with
+    their muxes, to make wider registers atomic). Reads keep the bus timing of the
+    multiplexer: the register's ``r_stb`` is high in the strobe's cycle and the word is on
+    ``r_data`` in the next cycle only (zero otherwise, as the CSR decoder ORs its windows).
+    A write reaches the register's fields in the strobe's cycle (they take it at that edge).
+    """
     def __init__(self, regs, members):
-        self._bridge = csr.Bridge(regs.as_memory_map())
+        self._memory_map = regs.as_memory_map()
         super().__init__({"bus": _bus_members(regs), **members})
-        self.bus.memory_map = self._bridge.bus.memory_map
+        self.bus.memory_map = self._memory_map
 
     def _elaborate_bridge(self):
         m = Module()
-        m.submodules.bridge = self._bridge
-        wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
+        bus = self.bus
+        r_word = 0
+        for reg, name, (start, end) in self._memory_map.resources():
+            assert end - start == 1, "every register is one bus word"
+            m.submodules["_".join(str(part) for part in name)] = reg
+            select = Signal(name=f"select_{'_'.join(str(part) for part in name)}")
+            m.d.comb += select.eq(bus.addr == start)
+            if reg.element.access.readable():
+                m.d.comb += reg.element.r_stb.eq(bus.r_stb & select)
+                r_word = r_word | Mux(select, reg.element.r_data, 0)
+            if reg.element.access.writable():
+                m.d.comb += [
+                    reg.element.w_stb.eq(bus.w_stb & select),
+                    reg.element.w_data.eq(bus.w_data),
+                ]
+        # Loaded in every cycle (zero without a read), so it needs no reset.
+        r_data = Signal.like(bus.r_data, reset_less=True)
+        m.d.sync += r_data.eq(Mux(bus.r_stb, r_word, 0))
+        m.d.comb += bus.r_data.eq(r_data)
         return m
 
 
-class Leds(_CsrComponent):
+def _tick_members(shared_tick):
+    return {"tick": In(1)} if shared_tick else {}
+
+
+def _free_running_tick(m, clk_freq):
+    """A one-cycle pulse every millisecond, from a prescaler of the component's own."""
+    cycles = _millisecond_prescaler(clk_freq)
+    tick = Signal(name="tick")
+    if cycles == 1:
+        m.d.comb += tick.eq(1)
+        return tick
+    # A down-counter reaching zero: a narrow equality, no compare against the period.
+    count = Signal(range(cycles), init=cycles - 1, name="prescaler")
+    m.d.comb += tick.eq(count == 0)
+    m.d.sync += count.eq(Mux(tick, cycles - 1, count - 1))
+    return tick
+
+
+class _Ticked(_CsrComponent):
+    """A component counting the RTC's milliseconds (``shared_tick``) or its own."""
+    def __init__(self, clk_freq, shared_tick, regs, members):
+        self._clk_freq = clk_freq
+        self._shared_tick = bool(shared_tick)
+        _millisecond_prescaler(clk_freq)
+        super().__init__(regs, {**members, **_tick_members(shared_tick)})
+
+    def _millisecond(self, m):
+        if self._shared_tick:
+            return self.tick
+        return _free_running_tick(m, self._clk_freq)
+
+
+def _milliseconds(seconds, what):
+    """Whole milliseconds in ``seconds`` (at least one)."""
+    if not isinstance(seconds, (int, float)) or isinstance(seconds, bool) or seconds <= 0:
+        raise ValueError(f"{what} must be a positive number of seconds, not {seconds!r}")
+    return max(1, round(seconds * MILLIS_PER_SECOND))
+
+
+_SHARED_TICK_DOC = """
+    shared_tick : bool
+        Count the milliseconds of a ``tick`` input (the RTC's ``tick``, shared by the
+        logger's peripherals) instead of a prescaler of its own."""
+
+
+class Leds(_Ticked):
     """The four LEDs: firmware-driven, two of them also lit by hardware activity.
 
     ``led[0]`` = ``value[0]`` (recording), ``led[3]`` = ``value[3]`` (GPS fix);
     ``led[1]`` = ``value[1]`` or a pulse of ``activity[0]`` in the last ``stretch_s``
     (a kept magnetometer frame), ``led[2]`` likewise with ``activity[1]`` (a kept GPS frame).
+    The stretch is counted in whole milliseconds: a pulse lights its LED for ``stretch_s``
+    (rounded to the millisecond) up to a millisecond more.
+
+    Parameters
+    ----------
+    clk_freq : float
+    stretch_s : float
+        How long an activity pulse lights its LED (at least a millisecond).""" + \
+        _SHARED_TICK_DOC + """
 
     Members
     -------
     bus : ``In(csr.Signature(...))``
     activity : ``In(2)``: one-cycle pulses.
     led : ``Out(4)``
+    tick : ``In(1)`` (with ``shared_tick``): a one-cycle pulse every millisecond.
     """
 
     class Value(csr.Register, access="rw"):
@@ -123,67 +196,82 @@ class Leds(_CsrComponent):
         light for a moment."""
         value: csr.Field(csr.action.RW, 4)
 
-    def __init__(self, clk_freq, stretch_s=0.05):
+    def __init__(self, clk_freq, stretch_s=0.05, *, shared_tick=False):
         _check_frequency(clk_freq)
-        self._stretch = _cycles(clk_freq, stretch_s, "Activity stretch")
+        self._stretch = _milliseconds(stretch_s, "Activity stretch")
         regs = _builder(1)
         self._value = regs.add("value", self.Value())
-        super().__init__(regs, {"activity": In(2), "led": Out(4)})
+        super().__init__(clk_freq, shared_tick, regs, {"activity": In(2), "led": Out(4)})
 
     def elaborate(self, platform):
         m = self._elaborate_bridge()
+        tick = self._millisecond(m)
         value = self._value.f.value.data
         lit = []
         for k in range(2):
-            # A pulse lights the LED for `stretch` cycles (a new pulse starts them again).
-            remaining = Signal(range(self._stretch + 1), name=f"remaining_{k}")
+            # A pulse lights the LED for `stretch` + 1 ticks, the first of which may come at
+            # once (a new pulse starts them again).
+            remaining = Signal(range(self._stretch + 2), name=f"remaining_{k}")
             with m.If(self.activity[k]):
-                m.d.sync += remaining.eq(self._stretch)
-            with m.Elif(remaining != 0):
+                m.d.sync += remaining.eq(self._stretch + 1)
+            with m.Elif(tick & (remaining != 0)):
                 m.d.sync += remaining.eq(remaining - 1)
             lit.append(remaining != 0)
         m.d.comb += self.led.eq(Cat(value[0], value[1] | lit[0], value[2] | lit[1], value[3]))
         return m
 
 
-class Button(_CsrComponent):
+class Button(_Ticked):
     """The push button, synchronised and debounced.
 
     The asynchronous ``button`` (high = pressed) goes through a two-stage synchroniser; the
     debounced ``level`` takes the synchronised value once it has differed from ``level``
     for ``debounce_s`` without a break, so bounce and glitches shorter than that are never
-    seen. ``press`` pulses for one cycle as ``level`` rises.
+    seen. The time is counted in whole milliseconds: ``level`` follows a settled input
+    after ``debounce_s`` (rounded to the millisecond) up to a millisecond more. ``press``
+    pulses for one cycle as ``level`` rises.
+
+    Parameters
+    ----------
+    clk_freq : float
+    debounce_s : float""" + _SHARED_TICK_DOC + """
 
     Members
     -------
     bus : ``In(csr.Signature(...))``
     button : ``In(1)``; level : ``Out(1)``; press : ``Out(1)``
+    tick : ``In(1)`` (with ``shared_tick``): a one-cycle pulse every millisecond.
     """
 
     class Status(csr.Register, access="r"):
         """The debounced button level (1 = pressed)."""
         level: csr.Field(csr.action.R, 1)
 
-    def __init__(self, clk_freq, debounce_s=0.01):
+    def __init__(self, clk_freq, debounce_s=0.01, *, shared_tick=False):
         _check_frequency(clk_freq)
-        self._debounce = _cycles(clk_freq, debounce_s, "Debounce time")
+        self._debounce = _milliseconds(debounce_s, "Debounce time")
         regs = _builder(1)
         self._status = regs.add("status", self.Status())
-        super().__init__(regs, {"button": In(1), "level": Out(1), "press": Out(1)})
+        super().__init__(clk_freq, shared_tick, regs,
+                         {"button": In(1), "level": Out(1), "press": Out(1)})
 
     def elaborate(self, platform):
         m = self._elaborate_bridge()
+        tick = self._millisecond(m)
         synced = Signal()
         m.submodules.sync = FFSynchronizer(self.button, synced, stages=2)
 
-        differing = Signal(range(self._debounce))   # cycles synced has differed from level
+        # Ticks seen while synced has differed from level: the first may come at once, so
+        # `debounce` + 1 of them make at least `debounce` milliseconds.
+        differing = Signal(range(self._debounce + 1))
         m.d.sync += self.press.eq(0)
         with m.If(synced == self.level):
             m.d.sync += differing.eq(0)
-        with m.Elif(differing == self._debounce - 1):
-            m.d.sync += [self.level.eq(synced), self.press.eq(synced), differing.eq(0)]
-        with m.Else():
-            m.d.sync += differing.eq(differing + 1)
+        with m.Elif(tick):
+            with m.If(differing == self._debounce):
+                m.d.sync += [self.level.eq(synced), self.press.eq(synced), differing.eq(0)]
+            with m.Else():
+                m.d.sync += differing.eq(differing + 1)
         m.d.comb += self._status.f.level.r_data.eq(self.level)
         return m
 
@@ -192,11 +280,14 @@ class Rtc(_CsrComponent):
     """Real-time clock: seconds and milliseconds, counted from the system clock.
 
     A millisecond is ``round(clk_freq / 1000)`` clocks, so the clock runs off by the
-    rounding error (none at the boards' 50 MHz).
+    rounding error (none at the boards' 50 MHz). ``tick`` pulses at each millisecond, for
+    the peripherals that count milliseconds (built with ``shared_tick``).
 
     Members
     -------
     bus : ``In(csr.Signature(...))``
+    tick : ``Out(1)``: a one-cycle pulse every millisecond (a write of the seconds starts
+        the millisecond again).
     """
 
     class Seconds(csr.Register, access="rw"):
@@ -214,26 +305,42 @@ class Rtc(_CsrComponent):
         regs = _builder(2)
         self._seconds = regs.add("seconds", self.Seconds())
         self._subsec = regs.add("subsec", self.Subsec())
-        super().__init__(regs, {})
+        super().__init__(regs, {"tick": Out(1)})
 
     def elaborate(self, platform):
         m = self._elaborate_bridge()
-        prescaler = Signal(range(self._prescaler))
+        cycles    = self._prescaler
+        prescaler = Signal(range(cycles), init=cycles - 1)   # counts down to the tick
         millis    = Signal(range(MILLIS_PER_SECOND))
         seconds   = Signal(32)
-        latched   = Signal(range(MILLIS_PER_SECOND))
+        latched   = Signal(range(MILLIS_PER_SECOND), reset_less=True)
         field = self._seconds.f.value
 
-        with m.If(prescaler == self._prescaler - 1):
-            m.d.sync += prescaler.eq(0)
+        # seconds + 1 with a short carry path: which bytes of the seconds are all ones is
+        # registered (the seconds stand still for a whole second before they count on).
+        full_bytes = Signal(4)
+        m.d.sync += full_bytes.eq(Cat(seconds[8 * k:8 * k + 8].all() for k in range(4)))
+        next_seconds = Cat(
+            (seconds[8 * k:8 * k + 8] + full_bytes[:k].all())[:8] for k in range(4))
+
+        # `tick` is high while the prescaler is at 0, from a flip-flop of its own (it starts
+        # the RTC's longer paths).
+        m.d.sync += prescaler.eq(Mux(self.tick, cycles - 1, prescaler - 1))
+        if cycles == 1:
+            m.d.comb += self.tick.eq(1)
+        else:
+            tick = Signal()
+            m.d.sync += tick.eq(prescaler == 1)
+            with m.If(field.w_stb):
+                m.d.sync += tick.eq(0)
+            m.d.comb += self.tick.eq(tick)
+        with m.If(self.tick):
             with m.If(millis == MILLIS_PER_SECOND - 1):
-                m.d.sync += [millis.eq(0), seconds.eq(seconds + 1)]
+                m.d.sync += [millis.eq(0), seconds.eq(next_seconds)]
             with m.Else():
                 m.d.sync += millis.eq(millis + 1)
-        with m.Else():
-            m.d.sync += prescaler.eq(prescaler + 1)
         with m.If(field.w_stb):
-            m.d.sync += [seconds.eq(field.w_data), millis.eq(0), prescaler.eq(0)]
+            m.d.sync += [seconds.eq(field.w_data), millis.eq(0), prescaler.eq(cycles - 1)]
         # The read takes the seconds of this cycle, so the latched milliseconds belong to them.
         with m.If(field.r_stb):
             m.d.sync += latched.eq(millis)
@@ -244,25 +351,32 @@ class Rtc(_CsrComponent):
         return m
 
 
-class Watchdog(_CsrComponent):
+class Watchdog(_Ticked):
     """Fires when the firmware, having enabled it, stops kicking it.
 
-    While ``enable`` is set, milliseconds are counted since the last kick (or write of
-    ``control``); when they reach ``timeout_ms``, ``fire`` pulses for one cycle, ``enable``
-    goes back to 0 and ``reset_cause`` is set. The top resets the rest of the logger with
-    ``fire``; this component is outside that reset, so ``reset_cause`` tells the restarted
-    firmware what happened, until the domain's own reset (the external ``rst``) clears it.
+    While ``enable`` is set, milliseconds are counted down from ``timeout_ms`` since the
+    last kick (or write of ``control``); when they have run out, ``fire`` pulses for one
+    cycle, ``enable`` goes back to 0 and ``reset_cause`` is set. The milliseconds are whole
+    ones of a free-running count, so it fires between ``timeout_ms`` and ``timeout_ms`` + 1
+    milliseconds after the kick. The top resets the rest of the logger with ``fire``; this
+    component is outside that reset, so ``reset_cause`` tells the restarted firmware what
+    happened, until the domain's own reset (the external ``rst``) clears it.
+
+    Parameters
+    ----------
+    clk_freq : float""" + _SHARED_TICK_DOC + """
 
     Members
     -------
     bus : ``In(csr.Signature(...))``
     fire : ``Out(1)``
+    tick : ``In(1)`` (with ``shared_tick``): a one-cycle pulse every millisecond.
     """
 
     class Control(csr.Register, access="rw"):
         """`enable` starts the watchdog (it goes back to 0 when the watchdog fires);
-        `timeout_ms`: milliseconds without a kick before it fires (0 fires at once).
-        Writing restarts the count."""
+        `timeout_ms`: milliseconds without a kick before it fires (up to one more; 0 fires
+        within a millisecond). Writing restarts the count."""
         enable:     csr.Field(RWStrobed, 1)
         timeout_ms: csr.Field(csr.action.RW, 16, init=1000)
 
@@ -274,38 +388,42 @@ class Watchdog(_CsrComponent):
         """`reset_cause` 1: the watchdog has fired since the last external reset."""
         reset_cause: csr.Field(csr.action.R, 1)
 
-    def __init__(self, clk_freq):
-        self._prescaler = _millisecond_prescaler(clk_freq)
+    def __init__(self, clk_freq, *, shared_tick=False):
         regs = _builder(3)
         self._control = regs.add("control", self.Control())
         self._kick = regs.add("kick", self.Kick())
         self._status = regs.add("status", self.Status())
-        super().__init__(regs, {"fire": Out(1)})
+        super().__init__(clk_freq, shared_tick, regs, {"fire": Out(1)})
 
     def elaborate(self, platform):
         m = self._elaborate_bridge()
+        tick        = self._millisecond(m)
         enable      = Signal()
         reset_cause = Signal()
-        prescaler   = Signal(range(self._prescaler))
-        elapsed     = Signal(16)                 # milliseconds since the last kick
+        remaining   = Signal(16)            # whole milliseconds left before it fires
         control, kick = self._control.f, self._kick.f.kick
         m.d.comb += [
             control.enable.r_data.eq(enable),
             self._status.f.reset_cause.r_data.eq(reset_cause),
         ]
 
-        with m.If(prescaler == self._prescaler - 1):
-            m.d.sync += [prescaler.eq(0), elapsed.eq(elapsed + 1)]
-        with m.Else():
-            m.d.sync += prescaler.eq(prescaler + 1)
-        with m.If(control.enable.w_stb | (kick.w_stb & kick.w_data) | ~enable):
-            m.d.sync += [prescaler.eq(0), elapsed.eq(0)]
+        # A write of `control` stores its timeout at the write's edge: the count restarts
+        # from it in the next cycle too.
+        written = Signal()
+        m.d.sync += written.eq(control.enable.w_stb)
+        restart = written | control.enable.w_stb | (kick.w_stb & kick.w_data) | ~enable
+        with m.If(restart):
+            m.d.sync += remaining.eq(control.timeout_ms.data)
+        with m.Elif(tick & (remaining != 0)):
+            m.d.sync += remaining.eq(remaining - 1)
         with m.If(control.enable.w_stb):
             m.d.sync += enable.eq(control.enable.w_data)
 
         m.d.sync += self.fire.eq(0)
+        # The tick that finds nothing left fires: the first tick after a restart may come at
+        # once, so `timeout_ms` + 1 ticks make at least `timeout_ms` milliseconds.
         # (Placed last: firing wins over a write of `control` in the same cycle.)
-        with m.If(enable & (elapsed >= control.timeout_ms.data)):
+        with m.If(enable & tick & (remaining == 0)):
             m.d.sync += [self.fire.eq(1), enable.eq(0), reset_cause.eq(1)]
         return m
 
@@ -359,16 +477,30 @@ def tap_signature(n_channels):
     })
 
 
-class _Zda(enum.Enum, shape=3):
-    """Where the ZDA parser is in a frame of the watched channel."""
-    START    = 0    # waits for a frame's first byte, `$`
-    ADDRESS  = 1    # waits for the talker's two letters and `ZDA,` (position in `digits`)
-    TIME     = 2    # waits for the six digits of hhmmss
-    DECIMALS = 3    # waits for the `.` of decimal seconds or the `,` ending the time field
-    FRACTION = 4    # waits for decimal digits up to the `,` ending the time field
-    DATE     = 5    # waits for the digits and `,` of day, month, year (index in `field`)
-    DONE     = 6    # waits for the frame's last byte, to commit what was read
-    SKIP     = 7    # waits for the last byte of a frame that is not a good ZDA
+#: What each position of a ZDA frame, counted from its `$`, must hold (the decimals of the
+#: seconds, between the time's digits and its comma, are not counted): a character, a talker
+#: letter, a digit, or the end of the time (`.` or `,`). After the year's comma (``DONE``)
+#: any bytes may follow until the frame's last.
+_LETTER, _DIGIT, _TIME_END = "letter", "digit", "time end"
+_ZDA_TEMPLATE = ([ord("$"), _LETTER, _LETTER] + list(ZDA_ADDRESS) + [_DIGIT] * ZDA_TIME_DIGITS
+                 + [_TIME_END]
+                 + [c for width in ZDA_DATE_DIGITS for c in [_DIGIT] * width + [ord(",")]])
+_ZDA_DONE = len(_ZDA_TEMPLATE)
+_ZDA_TIME_END = _ZDA_TEMPLATE.index(_TIME_END)
+
+
+def _zda_field_ends():
+    """The position of each field's last digit, by field name."""
+    first = _ZDA_TIME_END - ZDA_TIME_DIGITS
+    ends = {name: first + 2 * k + 1 for k, name in enumerate(["hour", "minute", "second"])}
+    pos = _ZDA_TIME_END                     # the comma before each date field
+    for name, width in zip(["day", "month", "year"], ZDA_DATE_DIGITS):
+        ends[name] = pos + width
+        pos += width + 1
+    return ends
+
+
+_ZDA_FIELD_ENDS = _zda_field_ends()
 
 
 class GpsTime(_CsrComponent):
@@ -431,107 +563,91 @@ class GpsTime(_CsrComponent):
     def elaborate(self, platform):
         m = self._elaborate_bridge()
         time, date = self._time.f, self._date.f
-        hour, minute, second = (Signal(5), Signal(6), Signal(6))
-        day, month, year = (Signal(5), Signal(4), Signal(12))
+        widths = {"hour": 5, "minute": 6, "second": 6, "day": 5, "month": 4, "year": 12}
+        # The registers read as zero until the first capture, so they need no reset.
+        kept = {name: Signal(width, name=name, reset_less=True)
+                for name, width in widths.items()}
         valid = Signal()
-        m.d.comb += [
-            time.hour.r_data.eq(hour), time.minute.r_data.eq(minute),
-            time.second.r_data.eq(second),
-            date.day.r_data.eq(day), date.month.r_data.eq(month), date.year.r_data.eq(year),
-            self._status.f.valid.r_data.eq(valid),
-        ]
+        for name in ("hour", "minute", "second"):
+            m.d.comb += time[name].r_data.eq(Mux(valid, kept[name], 0))
+        for name in ("day", "month", "year"):
+            m.d.comb += date[name].r_data.eq(Mux(valid, kept[name], 0))
+        m.d.comb += self._status.f.valid.r_data.eq(valid)
 
-        # Values as read (wide enough for any digits, checked against their ranges at the end).
-        read = {name: Signal(7, name=f"read_{name}")
-                for name in ("hour", "minute", "second", "day", "month")}
-        read["year"] = Signal(range(10 ** max(ZDA_DATE_DIGITS)), name="read_year")
-        time_fields = [read["hour"], read["minute"], read["second"]]
-        date_fields = [read["day"], read["month"], read["year"]]
+        # Fields as read, in the frame being parsed (committed at its last byte if good).
+        read = {name: Signal(width, name=f"read_{name}", reset_less=True)
+                for name, width in widths.items()}
 
-        state  = Signal(_Zda)
-        digits = Signal(range(8))           # characters read in the current field
-        field  = Signal(range(len(ZDA_DATE_DIGITS)))
-        acc    = Signal.like(read["year"])  # the current number, digit by digit
+        pos  = Signal(range(_ZDA_DONE + 1))   # position in _ZDA_TEMPLATE
+        frac = Signal()                       # a `.` has ended the time's digits
+        skip = Signal()                       # not a good ZDA: wait for the frame's end
+        # The current field's digits so far (three of the year's at most: 10 bits). Cleared
+        # at every position that is not a digit, so it needs no reset of its own.
+        acc  = Signal(10, reset_less=True)
 
         byte = self.i.payload.data
-        is_digit = (byte >= ord("0")) & (byte <= ord("9"))
-        shifted = Signal.like(acc)
-        m.d.comb += shifted.eq(acc * 10 + (byte - ord("0")))
+        digit = byte[:4]
+        is_digit  = (byte[4:] == ord("0") >> 4) & (digit <= 9)
         is_letter = (byte >= ord("A")) & (byte <= ord("Z"))
+        is_comma  = byte == ord(",")
+        # acc * 10 + digit, as (acc * 5 + digit // 2) * 2 + digit % 2: shifts and adds.
+        next_acc = Signal(14)
+        m.d.comb += next_acc.eq(Cat(digit[0], (acc << 2) + acc + digit[1:]))
 
-        in_range = ((read["hour"] < 24) & (read["minute"] < 60) & (read["second"] < 60) &
-                    (read["day"] >= 1) & (read["day"] <= 31) &
-                    (read["month"] >= 1) & (read["month"] <= 12) & (read["year"] < 1 << 12))
+        # The two-digit fields' ranges, from their digits (acc holds the tens digit).
+        tens = acc[:4]
+        in_range = {
+            "hour":   (tens < 2) | ((tens == 2) & (digit < 4)),
+            "minute": tens < 6,
+            "second": tens < 6,
+            "day":    ((tens < 3) | ((tens == 3) & (digit < 2))) & ((tens != 0) | (digit != 0)),
+            "month":  ((tens == 0) & (digit != 0)) | ((tens == 1) & (digit < 3)),
+            "year":   next_acc[12:] == 0,
+        }
+
+        good    = Signal()     # the byte is what its position needs
+        advance = Signal()     # and moves on to the next position
+        is_end  = Signal()     # it ends a field (its value is taken from next_acc)
+        with m.Switch(pos):
+            for k, what in enumerate(_ZDA_TEMPLATE):
+                with m.Case(k):
+                    if what == _LETTER:
+                        m.d.comb += [good.eq(is_letter), advance.eq(1)]
+                    elif what == _DIGIT:
+                        check = next((in_range[name] for name, end in _ZDA_FIELD_ENDS.items()
+                                      if end == k), 1)
+                        m.d.comb += [good.eq(is_digit & check), advance.eq(1),
+                                     is_end.eq(k in _ZDA_FIELD_ENDS.values())]
+                    elif what == _TIME_END:
+                        m.d.comb += [
+                            good.eq(is_comma | ((byte == ord(".")) & ~frac) | (frac & is_digit)),
+                            advance.eq(is_comma),
+                        ]
+                    else:
+                        m.d.comb += [good.eq(byte == what), advance.eq(1)]
+            with m.Default():                  # DONE: anything up to the frame's last byte
+                m.d.comb += good.eq(1)
 
         m.d.sync += self.zda.eq(0)
         taken = self.i.valid & self.i.ready & (self.i.payload.channel == self._channel)
         with m.If(taken):
-            with m.Switch(state):
-                with m.Case(_Zda.START):
-                    with m.If(byte == arch.DOLLAR):
-                        m.d.sync += [state.eq(_Zda.ADDRESS), digits.eq(0)]
-                    with m.Else():
-                        m.d.sync += state.eq(_Zda.SKIP)
-                with m.Case(_Zda.ADDRESS):
-                    m.d.sync += digits.eq(digits + 1)
-                    with m.Switch(digits):
-                        with m.Case(0, 1):
-                            with m.If(~is_letter):
-                                m.d.sync += state.eq(_Zda.SKIP)
-                        for k, char in enumerate(ZDA_ADDRESS):
-                            with m.Case(2 + k):
-                                with m.If(byte != char):
-                                    m.d.sync += state.eq(_Zda.SKIP)
-                                with m.Elif(k == len(ZDA_ADDRESS) - 1):
-                                    m.d.sync += [state.eq(_Zda.TIME), digits.eq(0), acc.eq(0)]
-                with m.Case(_Zda.TIME):
-                    # hh, mm, ss: each pair's value is stored at its second digit.
-                    with m.If(~is_digit):
-                        m.d.sync += state.eq(_Zda.SKIP)
-                    with m.Elif(digits[0]):
-                        m.d.sync += acc.eq(0)
-                        with m.Switch(digits[1:]):
-                            for k, target in enumerate(time_fields):
-                                with m.Case(k):
-                                    m.d.sync += target.eq(shifted)
-                    with m.Else():
-                        m.d.sync += acc.eq(shifted)
-                    m.d.sync += digits.eq(digits + 1)
-                    with m.If(is_digit & (digits == ZDA_TIME_DIGITS - 1)):
-                        m.d.sync += state.eq(_Zda.DECIMALS)
-                with m.Case(_Zda.DECIMALS, _Zda.FRACTION):
-                    with m.If(byte == arch.COMMA):
-                        m.d.sync += [state.eq(_Zda.DATE), field.eq(0), digits.eq(0), acc.eq(0)]
-                    with m.Elif((state == _Zda.DECIMALS) & (byte == arch.PERIOD)):
-                        m.d.sync += state.eq(_Zda.FRACTION)
-                    with m.Elif((state == _Zda.DECIMALS) | ~is_digit):
-                        m.d.sync += state.eq(_Zda.SKIP)
-                with m.Case(_Zda.DATE):
-                    # The field's width from a constant, not an Array: Yosys writes an
-                    # Array's lookup as an `always @*` that Icarus -g2012 (cocotb's flags)
-                    # never runs while `field` keeps its initial 0, so the width stayed x
-                    # and no ZDA was ever taken there.
-                    width = Cat(C(w, 3) for w in ZDA_DATE_DIGITS).word_select(field, 3)
-                    with m.If(is_digit & (digits < width)):
-                        m.d.sync += [acc.eq(shifted), digits.eq(digits + 1)]
-                    with m.Elif((byte == arch.COMMA) & (digits == width)):
-                        m.d.sync += [field.eq(field + 1), digits.eq(0), acc.eq(0)]
-                        with m.Switch(field):
-                            for k, target in enumerate(date_fields):
-                                with m.Case(k):
-                                    m.d.sync += target.eq(acc)
-                        with m.If(field == len(ZDA_DATE_DIGITS) - 1):
-                            m.d.sync += state.eq(_Zda.DONE)
-                    with m.Else():
-                        m.d.sync += state.eq(_Zda.SKIP)
-            # Every frame ends here, good or not; a good ZDA is committed whole.
             with m.If(self.i.payload.last):
-                m.d.sync += state.eq(_Zda.START)
-                with m.If((state == _Zda.DONE) & in_range):
-                    m.d.sync += [
-                        hour.eq(read["hour"]), minute.eq(read["minute"]),
-                        second.eq(read["second"]),
-                        day.eq(read["day"]), month.eq(read["month"]), year.eq(read["year"]),
-                        valid.eq(1), self.zda.eq(1),
-                    ]
+                # Every frame ends here, good or not; a good ZDA is committed whole.
+                m.d.sync += [pos.eq(0), frac.eq(0), skip.eq(0)]
+                with m.If(~skip & (pos == _ZDA_DONE)):
+                    m.d.sync += [kept[name].eq(read[name]) for name in widths]
+                    m.d.sync += [valid.eq(1), self.zda.eq(1)]
+            with m.Elif(~skip):
+                with m.If(~good):
+                    m.d.sync += skip.eq(1)
+                with m.Elif(advance):
+                    m.d.sync += pos.eq(pos + 1)
+                with m.If(byte == ord(".")):
+                    m.d.sync += frac.eq(1)
+                is_digit_pos = Cat(pos == k for k, what in enumerate(_ZDA_TEMPLATE)
+                                   if what == _DIGIT).any()
+                m.d.sync += acc.eq(Mux(is_digit_pos & ~is_end, next_acc, 0))
+                for name, end in _ZDA_FIELD_ENDS.items():
+                    with m.If(pos == end):
+                        m.d.sync += read[name].eq(next_acc)
         return m

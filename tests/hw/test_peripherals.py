@@ -163,8 +163,9 @@ def bounce(rng, ms, final):
 
 
 #: Cycles from a settled input to the press pulse (in this bench's cycle count): 10 ms of
-#: stable input at CLK, plus the two synchroniser stages.
-DEBOUNCE_DELAY = round(0.01 * CLK) + 2
+#: stable input at CLK counted in whole milliseconds (up to one more), plus the two
+#: synchroniser stages.
+DEBOUNCE_DELAY = range(round(0.01 * CLK) + 3, round(0.011 * CLK) + 3)
 
 
 def run_button(segments, *, debounce_s=0.01):
@@ -208,7 +209,7 @@ def test_bouncy_press_and_release_is_exactly_one_press(seed):
     assert [value for _, value in levels] == [1, 0]
     # The level follows once the input has been stable for 10 ms, after the synchroniser.
     stable_high = starts[segments.index((1, hold))]
-    assert presses[0] - stable_high == DEBOUNCE_DELAY
+    assert presses[0] - stable_high in DEBOUNCE_DELAY
     assert levels[0][0] == presses[0]        # press pulses as the level rises
     assert status == {"level": 0}
 
@@ -218,7 +219,7 @@ def test_glitches_shorter_than_debounce_are_ignored():
     segments = [(0, 0.005), (1, 0.0099), (0, 0.020), (1, 0.030), (0, 0.0099), (1, 0.020)]
     presses, levels, starts, status = run_button(segments)
     assert len(presses) == 1
-    assert presses[0] - starts[3] == DEBOUNCE_DELAY
+    assert presses[0] - starts[3] in DEBOUNCE_DELAY
     assert [value for _, value in levels] == [1]
     assert status == {"level": 1}
 
@@ -249,7 +250,8 @@ def test_watchdog_fires_once_after_the_timeout_without_kicks():
     (enabled, early, control, status), fires = run_watchdog(script)
     assert early == []
     assert len(fires) == 1
-    assert 5 * MS <= fires[0] - enabled <= 5 * MS + 3
+    # Whole milliseconds of a free-running count: 5 to 6 of them.
+    assert 5 * MS <= fires[0] - enabled <= 6 * MS + 3
     assert control == {"enable": 0, "timeout_ms": 5}
     assert status == {"reset_cause": 1}
 
@@ -266,7 +268,7 @@ def test_after_firing_the_watchdog_counts_afresh_when_enabled_again():
 
     (again, status), fires = run_watchdog(script)
     assert len(fires) == 2
-    assert 4 * MS <= fires[1] - again <= 4 * MS + 3
+    assert 4 * MS <= fires[1] - again <= 5 * MS + 3
     assert status == {"reset_cause": 1}
 
 
@@ -284,7 +286,7 @@ def test_kicks_keep_the_watchdog_quiet_and_it_fires_after_the_last():
     (last_kick, quiet, status), fires = run_watchdog(script)
     assert quiet == []
     assert len(fires) == 1
-    assert 5 * MS - 2 <= fires[0] - last_kick <= 5 * MS + 3
+    assert 5 * MS - 2 <= fires[0] - last_kick <= 6 * MS + 3
     assert status == {"reset_cause": 1}
 
 
@@ -298,7 +300,7 @@ def test_a_kick_of_zero_does_not_restart_the_count():
         return start
 
     start, fires = run_watchdog(script)
-    assert len(fires) == 1 and fires[0] - start <= 5 * MS + 3
+    assert len(fires) == 1 and fires[0] - start <= 6 * MS + 3
 
 
 def test_a_disabled_watchdog_never_fires():
@@ -330,12 +332,12 @@ def test_rtc_counts_seconds_and_latches_milliseconds_at_the_seconds_read():
 
     async def script(ctx, bus, regs):
         await bus.write(regs["seconds"].address, 1_700_000_000)
-        # The write takes effect at the last edge of bus.write (the field's strobe is one
-        # cycle after the bus strobe); a read samples the count as it is before its edge.
+        # The write takes effect at the first of bus.write's two edges (the edge ending the
+        # bus strobe); a read samples the count as it is before its edge.
         written = bus.now()
         await bus.wait(2.5)
         seconds = (await read(bus, regs, "seconds"))["value"]
-        elapsed = round((bus.now() - written) * RTC_CLK) - 1    # edges counted from zero
+        elapsed = round((bus.now() - written) * RTC_CLK)    # edges counted from zero
         subsec = (await read(bus, regs, "subsec"))["millis"]
         await bus.wait(0.3)
         # Not read again: subsec still holds what the seconds read latched.
@@ -367,13 +369,29 @@ def test_rtc_write_zeroes_the_milliseconds():
     assert (seconds, after) == (77, 0)
 
 
+@pytest.mark.parametrize("start", [0xFF, 0x1FFFF, 0xFF_FFFF, 0x80FF_FFFE, 0xFFFF_FFFF])
+def test_rtc_seconds_carry_across_their_bytes(start):
+    dut = Rtc(RTC_CLK)
+
+    async def script(ctx, bus, regs):
+        await bus.write(regs["seconds"].address, start)
+        found = []
+        for _ in range(2):
+            await bus.wait(1.0)
+            found.append((await read(bus, regs, "seconds"))["value"])
+        return found
+
+    assert simulate(dut, script, clk_freq=RTC_CLK) == [(start + 1) % (1 << 32),
+                                                       (start + 2) % (1 << 32)]
+
+
 def test_rtc_millisecond_is_the_rounded_clock_count():
     # At 1.5 kHz a millisecond is round(1.5) = 2 clocks: 1000 ms take 2000 clocks.
     dut = Rtc(1_500)
 
     async def script(ctx, bus, regs):
         await bus.write(regs["seconds"].address, 0)
-        await ctx.tick().repeat(1999)    # (the write took effect at bus.write's last edge)
+        await ctx.tick().repeat(1998)    # (the write took effect at bus.write's first edge)
         first = await read(bus, regs, "seconds")
         second = await read(bus, regs, "seconds")
         return first["value"], second["value"], (await read(bus, regs, "subsec"))["millis"]
@@ -448,8 +466,8 @@ def test_an_event_in_the_cycle_of_its_clear_is_kept():
 # --- LEDs -------------------------------------------------------------------------------
 
 def test_led_value_and_activity_stretch():
-    dut = Leds(CLK, stretch_s=0.002)          # 200 cycles
-    stretch = 200
+    dut = Leds(CLK, stretch_s=0.002)          # 2 ms, counted in whole milliseconds
+    ms = CLK // 1000
 
     async def script(ctx, bus, regs):
         seen = {}
@@ -465,17 +483,19 @@ def test_led_value_and_activity_stretch():
             assert led & 0b0100 == 0
             lit += 1
         seen["lit"] = lit
-        # A second pulse while lit restarts the stretch.
+        # A second pulse while lit restarts the stretch: 1.5 ms after the first, the LED is
+        # still lit 2 ms later (3.5 ms after the first pulse, which alone lights it 3 ms at
+        # most), and dark 3 ms after the second.
         ctx.set(dut.activity, 0b10)
         await ctx.tick()
         ctx.set(dut.activity, 0)
-        await ctx.tick().repeat(stretch // 2)
+        await ctx.tick().repeat(3 * ms // 2)
         ctx.set(dut.activity, 0b10)
         await ctx.tick()
         ctx.set(dut.activity, 0)
-        await ctx.tick().repeat(stretch - 2)
+        await ctx.tick().repeat(2 * ms - 1)
         seen["restarted"] = ctx.get(dut.led)
-        await ctx.tick().repeat(2)
+        await ctx.tick().repeat(ms + 1)
         seen["dark"] = ctx.get(dut.led)
         # value[1] lights LED2 without activity.
         await bus.write(regs["value"].address, regs["value"].encode(value=0b0110))
@@ -484,7 +504,8 @@ def test_led_value_and_activity_stretch():
 
     seen = simulate(dut, script)
     assert seen["value"] == 0b1001
-    assert seen["lit"] == stretch
+    # 2 ms (rounded to whole milliseconds of a free-running count) up to 1 ms more.
+    assert 2 * ms <= seen["lit"] <= 3 * ms
     assert seen["restarted"] == 0b1101
     assert seen["dark"] == 0b1001
     assert seen["firmware"] == 0b0110
@@ -729,3 +750,90 @@ def test_on_icarus_a_zda_is_captured(external, tmp_path):
     assert regs["date"].decode(int(words["1"], 16)) == {"day": 24, "month": 11, "year": 2026}
     assert regs["status"].decode(int(words["2"], 16)) == {"valid": 1}
     assert "pulses 1" in run.stdout
+
+
+# -- the shared millisecond tick ---------------------------------------------------------------
+
+def test_rtc_tick_pulses_every_millisecond_and_a_seconds_write_restarts_it():
+    dut = Rtc(RTC_CLK)
+    per_ms = RTC_CLK // 1000
+    ticks = []
+
+    async def script(ctx, bus, regs):
+        await bus.wait(0.0053)
+        await bus.write(regs["seconds"].address, 9)
+        written = round(bus.now() * RTC_CLK) - 1           # the edge the write took effect
+        await bus.wait(0.0031)
+        return written
+
+    written = simulate(dut, script, clk_freq=RTC_CLK, background=[pulse_log(dut.tick, ticks)])
+    before = [t for t in ticks if t < written]
+    after = [t for t in ticks if t >= written]
+    assert len(before) == 5 and len(after) == 3
+    assert {b - a for a, b in zip(before, before[1:])} == {per_ms}
+    assert before[0] == per_ms - 1
+    # The write starts the millisecond again: the next tick is a whole millisecond later.
+    assert [t - written for t in after] == [per_ms - 1, 2 * per_ms - 1, 3 * per_ms - 1]
+
+
+def drive_tick(dut, period, *, start=0):
+    """A background testbench pulsing ``dut.tick`` every ``period`` cycles from ``start``."""
+    async def ticker(ctx):
+        cycle = 0
+        async for _ in ctx.tick():
+            cycle += 1
+            ctx.set(dut.tick, cycle >= start and (cycle - start) % period == 0)
+    return ticker
+
+
+def test_a_watchdog_with_a_shared_tick_counts_the_ticks():
+    period = 7                      # cycles between the shared ticks
+    dut = Watchdog(CLK, shared_tick=True)
+    fires = []
+
+    async def script(ctx, bus, regs):
+        control = regs["control"]
+        await bus.write(control.address, control.encode(enable=1, timeout_ms=4))
+        enabled = bus.now() * CLK
+        await ctx.tick().repeat(200)       # no tick yet: nothing counts
+        quiet = list(fires)
+        await ctx.tick().repeat(100)
+        return enabled, quiet
+
+    (enabled, quiet) = simulate(dut, script, background=[
+        pulse_log(dut.fire, fires), drive_tick(dut, period, start=210)])
+    assert quiet == []
+    assert len(fires) == 1
+    # The fifth tick finds the count run out (4 whole ticks, the first possibly at once).
+    assert fires[0] == 210 + 4 * period + 1
+
+
+def test_leds_and_button_with_a_shared_tick_count_the_ticks():
+    period = 5
+    leds = Leds(CLK, stretch_s=0.003, shared_tick=True)    # 3 ticks, up to one more
+    lit = []
+
+    async def led_script(ctx, bus, regs):
+        ctx.set(leds.activity, 0b10)
+        await ctx.tick()
+        ctx.set(leds.activity, 0)
+        await ctx.tick().repeat(100)
+        return None
+
+    simulate(leds, led_script, background=[pulse_log(leds.led[2], lit),
+                                            drive_tick(leds, period)])
+    assert lit == list(range(1, len(lit) + 1))
+    assert 3 * period <= len(lit) <= 4 * period
+
+    button = Button(CLK, debounce_s=0.002, shared_tick=True)
+    presses = []
+
+    async def button_script(ctx, bus, regs):
+        ctx.set(button.button, 1)
+        await ctx.tick().repeat(100)
+        return (await read(bus, regs, "status"))["level"]
+
+    level = simulate(button, button_script, background=[pulse_log(button.press, presses),
+                                                        drive_tick(button, period)])
+    assert level == 1 and len(presses) == 1
+    assert 2 + 2 * period < presses[0] <= 2 + 3 * period + 1
