@@ -29,8 +29,9 @@ class RxByte(data.StructLayout):
 
 class _State(enum.Enum, shape=2):
     IDLE      = 0
-    RECEIVE   = 1
-    WAIT_MARK = 2
+    START     = 1       # in the start bit
+    RECEIVE   = 2       # in a data bit, or the stop bit once the marker reaches shreg[0]
+    WAIT_MARK = 3
 
 
 class UartRx(wiring.Component):
@@ -86,80 +87,82 @@ class UartRx(wiring.Component):
         line = Signal(init=arch.MARK)
         m.submodules.sync = FFSynchronizer(self.rx, line, init=arch.MARK)
 
-        # Oversampling tick: one every `divisor` cycles.
-        count = Signal(self._divisor_bits)
+        # Oversampling tick: a down-counter from `divisor` reaching 1 (or 0, so that a
+        # divisor of 0 acts as 1); a new divisor counts from the next tick on. Datapath
+        # registers below are loaded before they are used, so they need no reset.
+        count = Signal(self._divisor_bits, reset_less=True)
         tick  = Signal()
-        m.d.comb += tick.eq(count + 1 >= self.divisor)
-        with m.If(tick):
-            m.d.sync += count.eq(0)
-        with m.Else():
-            m.d.sync += count.eq(count + 1)
+        m.d.comb += tick.eq(count[1:] == 0)
+        m.d.sync += count.eq(Mux(tick, self.divisor, count - 1))
 
-        phase  = Signal(range(arch.OVERSAMPLING))    # tick within the bit, 0 = first sample
-        bit    = Signal(range(arch.CHARACTER_BITS))  # 0 = start, 1..8 = data, 9 = stop
-        votes  = Signal(len(arch.VOTE_TICKS) - 1)
-        shreg  = Signal(arch.DATA_BITS)
-        first_vote, *_, last_vote = arch.VOTE_TICKS
+        phase = Signal(range(arch.OVERSAMPLING), reset_less=True)  # tick in the bit, 0 = first
+        votes = Signal(len(arch.VOTE_TICKS) - 1, reset_less=True)
+        # The data bits shift in from the top behind a marker bit: once the marker reaches
+        # shreg[0], the eight data bits are in shreg[1:] and the bit now is the stop bit.
+        shreg = Signal(1 + arch.DATA_BITS, reset_less=True)
+        data  = shreg[1:]
+        last_vote = arch.VOTE_TICKS[-1]
+        assert arch.VOTE_TICKS == tuple(range(last_vote - len(votes), last_vote + 1))
 
         # The majority of the earlier votes and the sample taken now.
         value = Signal()
         m.d.comb += value.eq((votes[0] & votes[1]) | (votes[0] & line) | (votes[1] & line))
 
         # Emit: hold the character until it is taken; a newer one replaces it (overrun).
+        payload = Signal(RxByte(), reset_less=True)
+        m.d.comb += self.o.payload.eq(payload)
         emit  = Signal()
         ferr  = Signal()
         with m.If(emit):
             m.d.sync += [
                 self.o.valid.eq(1),
-                self.o.payload.data.eq(shreg),
-                self.o.payload.framing_error.eq(ferr),
-                self.o.payload.brk.eq(ferr & (shreg == 0)),
-                self.o.payload.overrun.eq(self.o.valid & ~self.o.ready),
+                payload.data.eq(data),
+                payload.framing_error.eq(ferr),
+                payload.brk.eq(ferr & (data == 0)),
+                payload.overrun.eq(self.o.valid & ~self.o.ready),
             ]
         with m.Elif(self.o.ready):
             m.d.sync += self.o.valid.eq(0)
 
         state = Signal(_State)
+        with m.If(tick):
+            # The samples of the last ticks: at the last vote tick, those of the earlier ones.
+            m.d.sync += [phase.eq(phase + 1), votes.eq(Cat(votes[1:], line))]
+        decide = tick & (phase == last_vote)     # the middle of a bit: its majority is known
         with m.Switch(state):
             with m.Case(_State.IDLE):
                 # Waits for a sample at space: the possible start of a start bit.
                 with m.If(tick & (line == arch.SPACE)):
-                    m.d.sync += [
-                        phase.eq(1),
-                        bit.eq(0),
-                        state.eq(_State.RECEIVE),
-                    ]
+                    m.d.sync += [phase.eq(1), state.eq(_State.START)]
+
+            with m.Case(_State.START):
+                with m.If(decide):
+                    with m.If(value != arch.SPACE):
+                        # A glitch, not a start bit.
+                        m.d.sync += state.eq(_State.IDLE)
+                    with m.Else():
+                        m.d.sync += [shreg.eq(1 << arch.DATA_BITS), state.eq(_State.RECEIVE)]
 
             with m.Case(_State.RECEIVE):
-                # Waits for the middle of each bit, votes, and moves on at the bit's end.
-                with m.If(tick):
-                    m.d.sync += phase.eq(phase + 1)
-                    with m.If((phase >= first_vote) & (phase < last_vote)):
-                        m.d.sync += votes.eq(Cat(votes[1:], line))
-                    with m.If(phase == last_vote):
-                        with m.If(bit == 0):
-                            with m.If(value != arch.SPACE):
-                                # A glitch, not a start bit.
-                                m.d.sync += state.eq(_State.IDLE)
-                        with m.Elif(bit <= arch.DATA_BITS):
-                            m.d.sync += shreg.eq(Cat(shreg[1:], value))
-                        with m.Else():
-                            # The stop bit decides at its middle, so the next start bit is
-                            # seen on time even from a fast transmitter.
-                            m.d.comb += [
-                                emit.eq(1),
-                                ferr.eq(value != arch.MARK),
-                            ]
-                            with m.If(value == arch.MARK):
-                                m.d.sync += state.eq(_State.IDLE)
-                            with m.Elif(shreg == 0):
-                                # A break: nothing to align to until the line is mark.
-                                m.d.sync += state.eq(_State.WAIT_MARK)
-                            # Otherwise a damaged stop bit: in a continuous stream the next
-                            # start bit follows it with no edge between them, so keep counting
-                            # and take the next bit slot as a start bit if it is space there.
-                    with m.If(phase == arch.OVERSAMPLING - 1):
-                        m.d.sync += bit.eq(Mux(bit == arch.CHARACTER_BITS - 1, 0, bit + 1))
+                with m.If(decide & ~shreg[0]):
+                    m.d.sync += shreg.eq(Cat(shreg[1:], value))
+                with m.If(decide & shreg[0]):
+                    # The stop bit decides at its middle, so the next start bit is seen on
+                    # time even from a fast transmitter.
+                    m.d.comb += [
+                        emit.eq(1),
+                        ferr.eq(value != arch.MARK),
+                    ]
+                    with m.If(value == arch.MARK):
+                        m.d.sync += state.eq(_State.IDLE)
+                    with m.Elif(data == 0):
+                        # A break: nothing to align to until the line is mark.
+                        m.d.sync += state.eq(_State.WAIT_MARK)
+                    with m.Else():
+                        # A damaged stop bit: in a continuous stream the next start bit
+                        # follows it with no edge between them, so keep counting and take
+                        # the next bit slot as a start bit if it is space there.
+                        m.d.sync += state.eq(_State.START)
 
             with m.Case(_State.WAIT_MARK):
                 # Waits for the line to return to mark after a framing error or break.
