@@ -64,12 +64,15 @@ class FrameArbiter(wiring.Component):
 
         with m.If(~busy):
             # Round robin: try grant+1, grant+2, ... in that order; the first ready wins.
-            # Walk the priority order backwards so the highest priority is assigned last.
-            for step in reversed(range(1, n + 1)):
-                candidate = Signal(index, name=f"candidate_{step}")
-                m.d.comb += candidate.eq(Mux(grant + step >= n, grant + step - n, grant + step))
-                with m.If(valids.bit_select(candidate, 1)):
-                    m.d.sync += [grant.eq(candidate), busy.eq(1)]
+            # Walk the priority order backwards so the highest priority is assigned last
+            # (each grant's order is a constant: no index arithmetic).
+            with m.Switch(grant):
+                for last in range(n):
+                    with m.Case(last):
+                        for step in reversed(range(1, n + 1)):
+                            candidate = (last + step) % n
+                            with m.If(valids[candidate]):
+                                m.d.sync += [grant.eq(candidate), busy.eq(1)]
 
         with m.Switch(grant):
             for k in range(n):
