@@ -116,21 +116,46 @@ class Dma(wiring.Component):
         self._buffer_seek = regs.add("buffer_seek", self.BufferSeek())
         self._buffer_write = regs.add("buffer_write", self.BufferWrite())
         self._buffer_read = regs.add("buffer_read", self.BufferRead())
-        self._bridge = csr.Bridge(regs.as_memory_map())
+        memory_map = regs.as_memory_map()
         super().__init__({
-            "bus":                  In(csr.Signature(addr_width=regs.addr_width,
-                                                     data_width=regs.data_width)),
+            "bus":                  In(csr.Signature(addr_width=memory_map.addr_width,
+                                                     data_width=memory_map.data_width)),
             "ring":                 Out(RingPort(level_bits)),
             "sd_i":                 Out(stream.Signature(8)),
             "sd_o":                 In(stream.Signature(8, always_ready=True)),
             "busy":                 Out(1),
         })
-        self.bus.memory_map = self._bridge.bus.memory_map
+        self.bus.memory_map = memory_map
+
+    def _registers(self, m):
+        """The registers on the CSR bus. Every register is one bus word, so reads need no
+        shadow: a read strobe latches the register (other reads latch zero, the bus's idle
+        value) and the data are on the bus the next clock; a write reaches its register a
+        clock after the bus write, with the data latched then (as amaranth-soc's
+        multiplexer does)."""
+        bus = self.bus
+        w_data = Signal(bus.data_width, reset_less=True)
+        m.d.sync += w_data.eq(bus.w_data)
+        # Without reset: it latches zero whenever there is no read, so also while the
+        # CPU is held in reset.
+        r_data = Signal(bus.data_width, reset_less=True)
+        r_fanin = 0
+        for reg, name, (start, end) in bus.memory_map.resources():
+            assert end == start + 1
+            m.submodules["_".join(name)] = reg
+            element, selected = reg.element, bus.addr == start
+            if element.access.readable():
+                m.d.comb += element.r_stb.eq(bus.r_stb & selected)
+                r_fanin |= Mux(element.r_stb, element.r_data, 0)
+            if element.access.writable():
+                m.d.sync += element.w_stb.eq(bus.w_stb & selected)
+                m.d.comb += element.w_data.eq(w_data)
+        m.d.sync += r_data.eq(r_fanin)
+        m.d.comb += bus.r_data.eq(r_data)
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.bridge = self._bridge
-        wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
+        self._registers(m)
 
         m.submodules.buffer = buffer = Memory(shape=32, depth=BUFFER_WORDS, init=[])
         # One write port and one synchronous read port, so that the buffer is one M9K: CPU
@@ -149,9 +174,12 @@ class Dma(wiring.Component):
                          write_port.en.eq(cpu_write.en)]
 
         self._ring_status(m)
-        cpu_read_addr = self._cpu_access(m, cpu_write, read_port.data)
+        # The buffer's word index serves the CPU and, while it sends the buffer, the DMA.
+        send_start, send_next = Signal(), Signal()
+        m.d.comb += read_port.addr.eq(
+            self._buffer_index(m, cpu_write, read_port.data, send_start, send_next))
         self._fill_from_sd(m, fill_write)
-        self._write_side(m, read_port, cpu_read_addr)
+        self._write_side(m, read_port, send_start, send_next)
         return m
 
     def _ring_status(self, m):
@@ -167,16 +195,20 @@ class Dma(wiring.Component):
             ring.clear.eq(control.clear.w_stb & control.clear.w_data),
         ]
 
-    def _cpu_access(self, m, cpu_write, read_data):
-        """CPU access to the sector buffer, a word at a time, the index moving on; returns
-        the address the CPU wants on the read port."""
+    def _buffer_index(self, m, cpu_write, read_data, send_start, send_next):
+        """CPU access to the sector buffer, a word at a time, the index moving on; the DMA
+        sending the buffer moves the same index (from 0 at `send_start`, on at `send_next`;
+        the firmware seeks before it accesses the buffer). Returns the next index, the
+        read port's address."""
         index = Signal(range(BUFFER_WORDS))
         index_next = Signal.like(index)
         seek, write, read = (self._buffer_seek.f.index, self._buffer_write.f.word,
                              self._buffer_read.f.word)
-        with m.If(seek.w_stb):
+        with m.If(send_start):
+            m.d.comb += index_next.eq(0)
+        with m.Elif(seek.w_stb):
             m.d.comb += index_next.eq(seek.w_data)
-        with m.Elif(write.w_stb | read.r_stb):
+        with m.Elif(write.w_stb | read.r_stb | send_next):
             m.d.comb += index_next.eq(index + 1)
         with m.Else():
             m.d.comb += index_next.eq(index)
@@ -212,22 +244,30 @@ class Dma(wiring.Component):
         with m.If(control.arm_read.w_stb & control.arm_read.w_data):
             m.d.sync += fill.eq(0)
 
-    def _write_side(self, m, read_port, cpu_read_addr):
+    def _write_side(self, m, read_port, send_start, send_next):
         """Sectors from the ring, or the buffer, to the SD host."""
         ring, control = self.ring, self._control.f
+        sector_bits = control.sectors.w_data.shape().width
         busy    = Signal()
         source  = Signal(DmaSource)
-        sectors = Signal(16)
-        sent    = Signal(16)
-        first   = Signal(12)
-        count   = Signal(range(arch_sd.BLOCK_BYTES + 1))
+        sectors = Signal(sector_bits, reset_less=True)
+        sent    = Signal(sector_bits)
+        # The ring's sector of the current one: `first` + `sent`, kept as a count of its own.
+        sector  = Signal(sector_bits + 1, reset_less=True)
+        count   = Signal(range(arch_sd.BLOCK_BYTES))   # bytes of the sector (wraps at its end)
+        count_next = Signal.like(count)
+        sent_next = Signal.like(sent)
+        sent_next = Signal.like(sent)
         asked   = Signal()                 # the ring was asked for the current sector
         m.d.comb += [
             self._status.f.busy.r_data.eq(busy),
             self._status.f.sent.r_data.eq(sent),
             self.busy.eq(busy),
-            ring.read_sector.eq(first + sent),
+            ring.read_sector.eq(sector),
+            count_next.eq(count + 1),
+            sent_next.eq(sent + 1),
         ]
+        last_byte = count == arch_sd.BLOCK_BYTES - 1
         starting = Signal()
         m.d.comb += starting.eq(control.start.w_stb & control.start.w_data & ~busy &
                                 (control.sectors.w_data != 0))
@@ -236,7 +276,7 @@ class Dma(wiring.Component):
                 busy.eq(1), source.eq(control.source.w_data),
                 sectors.eq(Mux(control.source.w_data == DmaSource.BUFFER, 1,
                                control.sectors.w_data)),
-                sent.eq(0), count.eq(0), asked.eq(0), first.eq(control.first.w_data),
+                sent.eq(0), count.eq(0), asked.eq(0), sector.eq(control.first.w_data),
             ]
         discarding = Signal()
         with m.If(control.abort.w_stb & control.abort.w_data & busy):
@@ -247,9 +287,9 @@ class Dma(wiring.Component):
         with m.If(discarding):
             m.d.comb += ring.data.ready.eq(1)
             with m.If(ring.data.valid):
-                m.d.sync += count.eq(count + 1)
-                with m.If(count == arch_sd.BLOCK_BYTES - 1):
-                    m.d.sync += [count.eq(0), asked.eq(0), busy.eq(0), discarding.eq(0)]
+                m.d.sync += count.eq(count_next)
+                with m.If(last_byte):
+                    m.d.sync += [asked.eq(0), busy.eq(0), discarding.eq(0)]
         with m.Elif(busy & (source == DmaSource.RING)):
             with m.If(~asked):
                 # Asks the ring for the next sector once it is free.
@@ -267,19 +307,17 @@ class Dma(wiring.Component):
                 self.sd_i.valid.eq(1),
                 self.sd_i.payload.eq(read_port.data.word_select(count[:2], 8)),
             ]
-        # The buffer's read port is given the word of the byte after a transfer.
+        # The buffer's read port is given the word of the byte after a transfer (the first
+        # word as sending starts).
         step = self.sd_i.valid & self.sd_i.ready
-        dma_read_addr = Mux(step, count + 1, count)[2:]
         sending = busy & (source == DmaSource.BUFFER)
-        with m.If(starting & (control.source.w_data == DmaSource.BUFFER)):
-            m.d.comb += read_port.addr.eq(0)        # the first word, ready when sending starts
-        with m.Elif(sending):
-            m.d.comb += read_port.addr.eq(dma_read_addr)
-        with m.Else():
-            m.d.comb += read_port.addr.eq(cpu_read_addr)
+        m.d.comb += [
+            send_start.eq(starting & (control.source.w_data == DmaSource.BUFFER)),
+            send_next.eq(sending & step & count[:2].all()),
+        ]
         with m.If(step):
-            m.d.sync += count.eq(count + 1)
-            with m.If(count == arch_sd.BLOCK_BYTES - 1):
-                m.d.sync += [count.eq(0), asked.eq(0), sent.eq(sent + 1)]
-                with m.If(sent + 1 == sectors):
+            m.d.sync += count.eq(count_next)
+            with m.If(last_byte):
+                m.d.sync += [asked.eq(0), sent.eq(sent_next), sector.eq(sector + 1)]
+                with m.If(sent_next == sectors):
                     m.d.sync += busy.eq(0)

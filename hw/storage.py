@@ -78,8 +78,9 @@ class Storage(wiring.Component):
 
         # Events for the SoC.
         dma_busy = Signal()
-        dropped = Signal.like(ring.dma.dropped)
-        m.d.sync += [dma_busy.eq(dma.busy), dropped.eq(ring.dma.dropped)]
+        # The drop count moves on by one at a time, so its lowest bit changes at every drop.
+        dropped_lsb = Signal()
+        m.d.sync += [dma_busy.eq(dma.busy), dropped_lsb.eq(ring.dma.dropped[0])]
         # The host's status register fields (read here, as the CPU reads them).
         status = sdio._status.f
         errors = Cat(Value.cast(status.cmd.r_data), Value.cast(status.write.r_data),
@@ -88,7 +89,7 @@ class Storage(wiring.Component):
         m.d.sync += errors_before.eq(errors)
         m.d.comb += [
             self.dma_done.eq(dma_busy & ~dma.busy),
-            self.ring_overflow.eq(dropped != ring.dma.dropped),
+            self.ring_overflow.eq(dropped_lsb != ring.dma.dropped[0]),
             self.sd_error.eq((errors & ~errors_before).any()),
         ]
         return m
