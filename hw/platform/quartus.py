@@ -28,7 +28,8 @@ from .top import CPU_MODULE, BoardTop
 
 
 __all__ = ["PROJECT_NAME", "SdramIoTiming", "SDRAM_TIMING", "SdIoTiming", "SD_DEFAULT_SPEED",
-           "LOGGER_BASE", "sdc_constraints", "qsys_script", "build_script", "YOSYS_STANDINS",
+           "LOGGER_BASE", "sdc_constraints", "qsys_script", "build_script",
+           "MEGAFUNCTION_STANDINS", "CPU_STANDIN",
            "build_project", "project_files"]
 
 #: The Quartus revision and top-level module.
@@ -267,8 +268,8 @@ quartus_sh --flow compile {PROJECT_NAME}
 
 
 #: Behavioural stand-ins for Yosys of the megafunctions Amaranth's Intel platform and the board
-#: top instantiate, and of the NIOS II system (an idle master). Not for Quartus.
-YOSYS_STANDINS = """\
+#: top instantiate (with :data:`CPU_STANDIN`, ``yosys/standins.v``). Not for Quartus.
+MEGAFUNCTION_STANDINS = """\
 // Stand-ins for Yosys only (maglog hw/platform/quartus.py): Quartus uses its own megafunctions
 // and the NIOS II system Platform Designer generates. Enough behaviour to elaborate the top.
 module altpll #(
@@ -344,6 +345,10 @@ module altera_std_synchronizer_bundle #(parameter width = 1, parameter depth = 3
     end endgenerate
 endmodule
 
+"""
+
+#: A stand-in for the NIOS II system: a master that never starts a transfer.
+CPU_STANDIN = """\
 // The NIOS II system: a master that never starts a transfer.
 module maglog_cpu #(parameter ADDRESS_WIDTH = 9)
     (input clk_clk, input reset_reset_n,
@@ -382,7 +387,7 @@ def project_files(board, **kwargs):
     files[f"{PROJECT_NAME}.qpf"] = f'PROJECT_REVISION = "{PROJECT_NAME}"\n'
     files["build.sh"] = build_script(board)
     files["pins.md"] = f"# {board.title}\n\n{pin_table_markdown(board)}\n"
-    files["yosys/standins.v"] = YOSYS_STANDINS
+    files["yosys/standins.v"] = MEGAFUNCTION_STANDINS + CPU_STANDIN
     return files
 
 
