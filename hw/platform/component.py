@@ -101,8 +101,7 @@ def hw_tcl(component):
             lines.append(f"add_interface {name} avalon end")
             props = {**AVS_TIMING, "associatedClock": "clock", "associatedReset": "reset",
                      "burstOnBurstBoundariesOnly": False, "burstcountUnits": "WORDS",
-                     "explicitAddressSpan": 0, "linewrapBursts": False,
-                     "printableDevice": False}
+                     "explicitAddressSpan": 0, "linewrapBursts": False}
             lines += [f"set_interface_property {name} {k} {_tcl_value(v)}"
                       for k, v in props.items()]
             lines += [f"set_interface_assignment {name} embeddedsw.configuration.{k} 0"
