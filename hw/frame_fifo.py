@@ -94,10 +94,16 @@ class FrameFifo(wiring.Component):
         wr_ptr, commit_ptr, rd_ptr = self.wr_ptr, self.commit_ptr, self.rd_ptr
 
         w_addr = Signal(abits + 1)
+        # The commit and read pointers at the same cell: the FIFO is either full of committed
+        # bytes or has none to read (one compare for both).
+        same_cell = Signal()
+        m.d.comb += same_cell.eq(commit_ptr[:abits] == rd_ptr[:abits])
         m.d.comb += [
             w_addr.eq(Mux(self.discard, commit_ptr, wr_ptr)),
-            self.full.eq((wr_ptr - rd_ptr)[:abits + 1] == self._depth),
-            self.full_committed.eq((commit_ptr - rd_ptr)[:abits + 1] == self._depth),
+            # Full: the pointers differ by exactly `depth`, that is in their top bit only
+            # (equality compares, no subtraction).
+            self.full.eq((wr_ptr[:abits] == rd_ptr[:abits]) & (wr_ptr[abits] != rd_ptr[abits])),
+            self.full_committed.eq(same_cell & (commit_ptr[abits] != rd_ptr[abits])),
             self.level.eq(wr_ptr - rd_ptr),
         ]
 
@@ -118,7 +124,8 @@ class FrameFifo(wiring.Component):
         # Read side: the memory's output register is the stream's payload.
         load = Signal()
         m.d.comb += [
-            load.eq((rd_ptr != commit_ptr) & (~self.o.valid | self.o.ready)),
+            load.eq((~same_cell | (commit_ptr[abits] != rd_ptr[abits])) &
+                    (~self.o.valid | self.o.ready)),
             rport.addr.eq(rd_ptr[:abits]),
             rport.en.eq(load),
             self.o.payload.eq(rport.data),
