@@ -22,7 +22,9 @@ from ..arch.sdram import IS42S16160, MT48LC4M32B2
 
 
 __all__ = ["LVTTL", "DE0NanoLoggerPlatform", "LoggerEP4CE6Platform", "Board", "BOARDS",
-           "pin_table", "pin_table_markdown", "EQFP144_USER_IO", "EQFP144_OTHER"]
+           "used_resources", "pin_table", "pin_table_markdown", "EQFP144_POWER",
+           "EQFP144_CONFIG", "EQFP144_DUAL_PURPOSE", "EQFP144_CLOCK_INPUTS", "EQFP144_USER_IO",
+           "EQFP144_OTHER"]
 
 LVTTL = "3.3-V LVTTL"
 
@@ -121,20 +123,30 @@ class LoggerEP4CE6Platform(IntelPlatform):
     connectors = []
 
 
-# EQFP144 pins of the EP4CE6E22C8 that are user I/O: those the RZ-EasyFPGA A2.2 board
-# (amaranth-boards 0.0.21, rz_easyfpga_a2_2) wires to its clock, keys, LEDs, SDRAM and
-# headers. 23, 24, 25 and 88-91 are dedicated clock inputs (input only). The rest of the
-# package (EQFP144_OTHER) is power, ground, configuration and JTAG, or dual-purpose
-# configuration pins (nCEO on 101 among them) that the board plan does not use. Not checked
-# against Intel's EP4CE6 pin-out file (not available here): check before making a board.
-EQFP144_USER_IO = frozenset(str(p) for p in (
-    1, 2, 3, 7, 10, 11, 23, 24, 25, 28, 30, 31, 32, 33, 34, 38, 39, 42, 43, 44, 46, 49, 50,
-    51, 52, 53, 54, 55, 58, 59, 60, 64, 65, 66, 67, 68, 69, 70, 71, 72, 73, 74, 75, 76, 77,
-    80, 83, 84, 85, 86, 87, 88, 89, 90, 91, 98, 99, 100, 101, 103, 104, 105, 106, 110, 111,
-    112, 113, 114, 115, 119, 120, 121, 124, 125, 126, 127, 128, 129, 132, 133, 135, 136,
-    137, 138, 141, 142, 143, 144))
+# The EP4CE6E22C8's EQFP144 package. Source: the pin functions of the KiCad symbol
+# "Altera:EP4CE6E22" (public repository balmerdx/CycloneIV_dev_board,
+# ep4ce10_0/cp4ce10_0-cache.lib), which follows Intel's pin-out; it agrees with the pins the
+# RZ-EasyFPGA A2.2 board (amaranth-boards rz_easyfpga_a2_2) uses as I/O, and its user I/O
+# count (87 + the 4 dual-purpose pins below = 91) is the device overview's for EP4CE6 E144.
+#: Power: VCCINT 5 29 45 61 78 102 116 134; VCCA 35 107; VCCD_PLL 37 109; VCCIO 17 26 40 47
+#: 56 62 81 93 117 122 130 139; GND 4 19 22 27 41 48 57 63 79 82 95 118 123 131 140; GNDA 36
+#: 108 (and the exposed pad).
+EQFP144_POWER = frozenset(str(p) for p in (
+    5, 29, 45, 61, 78, 102, 116, 134, 35, 107, 37, 109,
+    17, 26, 40, 47, 56, 62, 81, 93, 117, 122, 130, 139,
+    4, 19, 22, 27, 41, 48, 57, 63, 79, 82, 95, 118, 123, 131, 140, 36, 108))
+#: Dedicated configuration and JTAG: nSTATUS 9, DCLK 12, nCONFIG 14, TDI 15, TCK 16, TMS 18,
+#: TDO 20, nCE 21, CONF_DONE 92, MSEL0-2 94 96 97.
+EQFP144_CONFIG = frozenset(str(p) for p in (9, 12, 14, 15, 16, 18, 20, 21, 92, 94, 96, 97))
+#: Dual-purpose pins the board plan leaves alone: the serial flash's ASDO 6, nCSO 8, DATA0 13
+#: (active serial configuration), and nCEO 101 (I/O only with a device option).
+EQFP144_DUAL_PURPOSE = frozenset({"6", "8", "13", "101"})
+#: Dedicated clock inputs (input only): CLK1-3 23-25, CLK4-7 88-91.
 EQFP144_CLOCK_INPUTS = frozenset({"23", "24", "25", "88", "89", "90", "91"})
-EQFP144_OTHER = frozenset(str(p) for p in range(1, 145)) - EQFP144_USER_IO
+#: The pins a board may use as I/O (clock inputs for inputs only).
+EQFP144_USER_IO = (frozenset(str(p) for p in range(1, 145))
+                   - EQFP144_POWER - EQFP144_CONFIG - EQFP144_DUAL_PURPOSE)
+EQFP144_OTHER = EQFP144_POWER | EQFP144_CONFIG | EQFP144_DUAL_PURPOSE
 
 
 @dataclass(frozen=True)

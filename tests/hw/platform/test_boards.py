@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from maglog.hw.platform.boards import (BOARDS, EQFP144_CLOCK_INPUTS, EQFP144_OTHER,
-                                       EQFP144_USER_IO, LVTTL, pin_table, pin_table_markdown)
+from maglog.hw.platform.boards import (BOARDS, EQFP144_CLOCK_INPUTS, EQFP144_CONFIG,
+                                       EQFP144_DUAL_PURPOSE, EQFP144_POWER, EQFP144_USER_IO,
+                                       LVTTL, pin_table, pin_table_markdown)
 
 DOC = Path(__file__).resolve().parents[3] / "docs" / "boards.md"
 
@@ -45,7 +46,12 @@ def test_every_pin_is_lvttl_and_used_once(board):
 
 
 def test_ep4ce6_pins_are_user_io_of_eqfp144():
-    assert len(EQFP144_USER_IO) + len(EQFP144_OTHER) == 144
+    # The package is power, configuration, dual-purpose and user I/O, each pin once; user
+    # I/O and dual-purpose pins are the device overview's 91 for EP4CE6 in E144.
+    groups = (EQFP144_POWER, EQFP144_CONFIG, EQFP144_DUAL_PURPOSE, EQFP144_USER_IO)
+    assert sum(len(g) for g in groups) == 144
+    assert set().union(*groups) == {str(p) for p in range(1, 145)}
+    assert len(EQFP144_USER_IO) + len(EQFP144_DUAL_PURPOSE) == 91
     assert EQFP144_CLOCK_INPUTS <= EQFP144_USER_IO
     rows = pin_table(BOARDS["logger-ep4ce6"])
     for signal, _, pin, direction, _ in rows:
