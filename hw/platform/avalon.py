@@ -9,11 +9,12 @@ Timing of ``avs`` (the component's ``_hw.tcl`` says the same, from :data:`AVS_TI
 * address units are 32-bit words (``address`` is the register's word address; the NIOS
   sees register ``k`` at byte offset ``4 * k`` from the component's base);
 * pipelined reads with variable latency: a command (read or write) is accepted in the cycle
-  ``waitrequest`` is low, which is the cycle the logger's Wishbone ``ack`` arrives (about
-  three cycles after the command appears); the master holds its command while
+  ``waitrequest`` is low, which is the cycle the logger's Wishbone ``ack`` arrives (today
+  the command's third cycle: two under ``waitrequest``); the master holds its command while
   ``waitrequest`` is high. A read's data comes with ``readdatavalid`` in the cycle after it
-  was accepted. At most one read is in flight (``maximumPendingReadTransactions`` 1);
-  ``waitrequest`` is also high while no command is presented.
+  was accepted. At most one read is in flight (``maximumPendingReadTransactions`` 1: the
+  next command cannot be accepted before that data); ``waitrequest`` is also high while no
+  command is presented.
 
 Byte enables: every register is 32 bits wide and is read and written whole.
 
@@ -25,6 +26,8 @@ Byte enables: every register is 32 bits wide and is read and written whole.
   DMA's data window advances, counters are sampled), and a hidden read would do that.
 * Reads ignore ``byteenable``: the whole word is returned (and a read's action fires once).
 """
+
+from dataclasses import dataclass
 
 from amaranth import *
 from amaranth.lib import wiring
@@ -158,18 +161,15 @@ class AvalonLogger(wiring.Component):
         return m
 
 
+@dataclass(frozen=True)
 class Port:
     """One port of the Verilog module: its name, direction (``"input"``/``"output"``),
     width, the Platform Designer interface it belongs to and its role there."""
-    __slots__ = ("name", "direction", "width", "interface", "role")
-
-    def __init__(self, name, direction, width, interface, role):
-        self.name, self.direction, self.width = name, direction, width
-        self.interface, self.role = interface, role
-
-    def __repr__(self):
-        return (f"Port({self.name!r}, {self.direction!r}, {self.width}, {self.interface!r}, "
-                f"{self.role!r})")
+    name: str
+    direction: str
+    width: int
+    interface: str
+    role: str
 
 
 #: Pins of the logger as Platform Designer conduits: (interface, member of AvalonLogger,

@@ -127,3 +127,16 @@ def test_readme_names_the_files_and_the_id(folder):
         assert name in text
     assert f"{LOGGER_ID:#010x}" in text.lower()
     assert "40000000 Hz" in text
+
+
+def test_verilog_is_lint_clean_but_for_the_project_waivers(folder, external):
+    """Verilator's -Wall on the component's Verilog, with only the waivers every generated
+    top has (sim/backends/cocotb.py's VERILATOR_WAIVERS, as tests/hw/test_lint.py)."""
+    import subprocess
+    from maglog.sim.backends.cocotb import verilator_waiver_args
+    verilator = external.simulator("verilator")
+    proc = subprocess.run([verilator, "--lint-only", "-Wall", *verilator_waiver_args(),
+                           "--top-module", TOPLEVEL_NAME, str(folder / VERILOG_NAME)],
+                          capture_output=True, text=True, timeout=300)
+    warnings = re.findall(r"^%Warning-.*$", proc.stderr, re.M)
+    assert warnings == [] and proc.returncode == 0, proc.stderr[-2000:]
