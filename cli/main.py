@@ -723,7 +723,9 @@ def _parser():
                           "then PATH)")
     res.set_defaults(func=_cmd_hdl_resources)
 
+    from .hdl_build import register as register_build
     from .hdl_component import register as register_component
+    register_build(hdl_commands)
     register_component(hdl_commands)
 
     card = commands.add_parser("card", help="card images")
