@@ -400,7 +400,9 @@ class Watchdog(_Ticked):
         tick        = self._millisecond(m)
         enable      = Signal()
         reset_cause = Signal()
-        remaining   = Signal(16)            # whole milliseconds left before it fires
+        # Whole milliseconds left before it fires; loaded while disabled (as after a reset),
+        # so it needs no reset of its own.
+        remaining   = Signal(16, reset_less=True)
         control, kick = self._control.f, self._kick.f.kick
         m.d.comb += [
             control.enable.r_data.eq(enable),
