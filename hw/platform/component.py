@@ -145,8 +145,10 @@ def c_header(component, *, prefix="maglog"):
 
 def _readme(component):
     clk_freq = int(round(_clk_freq(component)))
-    return f"""maglog logger: Platform Designer component ({TOPLEVEL_NAME})
-{'=' * (48 + len(TOPLEVEL_NAME))}
+    span = WORD_BYTES << len(component.avs.address)
+    title = f"maglog logger: Platform Designer component ({TOPLEVEL_NAME})"
+    return f"""{title}
+{'=' * len(title)}
 
 Files
   {HW_TCL_NAME:<34} the component description (Platform Designer, qsys {QSYS_VERSION})
@@ -155,15 +157,15 @@ Files
 
 Adding it to a NIOS II system
   1. Tools > Options > IP Search Locations (or a project-level IP search path): add this
-     folder (or copy it under the project folder, where Platform Designer also looks).
+     folder.
   2. Refresh the IP Catalog; "maglog logger" is in the group "maglog". Add it.
   3. Connect: clock <- the system clock ({clk_freq} Hz, the clock the gateware was
      generated for; regenerate with --clk-freq for another), reset <- the system reset,
      avs <- the NIOS II data_master. Export the conduits uart, sd, sdram, led and button
      to the top level and wire them to the pins (sd and sdram carry separate output,
      output-enable and input signals: the tri-state buffers are in the board top).
-  4. Assign a base address (System > Assign Base Addresses); the slave spans
-     {4 << len(component.avs.address)} bytes.
+  4. Assign a base address (System > Assign Base Addresses); the slave spans {span}
+     bytes ({span:#x}).
   5. Generate the system; in the BSP, system.h gives the instance's *_BASE.
 
 Software
@@ -171,6 +173,9 @@ Software
       IORD_32DIRECT(BASE, MAGLOG_LOGGER_ID_ADDR) == {LOGGER_ID:#010x} ("{LOGGER_ID.to_bytes(4, "big").decode()}")
   The *_ADDR values are byte offsets from the component's base. A write with fewer than
   four byte enables (an 8- or 16-bit store) is accepted and changes nothing.
+
+Not yet tried in Quartus or Platform Designer: see docs/platform-designer.md in the maglog
+sources for what was checked and what to look at first.
 """
 
 
