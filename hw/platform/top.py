@@ -5,6 +5,7 @@
     clk50 ──► altpll ──c0──► sync (system clock, 50 MHz) ─┬─► logger, NIOS II system
                │      └─c1──► sdram_clk (same, phase-shifted) ──► DDR output ──► SDRAM CLK pin
                └─locked──► reset synchroniser ──► sync reset (held until the PLL locks)
+    NIOS II reset: the sync reset, or a watchdog expiry (the logger's body resets too)
 
 The NIOS II/e system (``maglog_cpu``, made by Platform Designer from the qsys-script of
 :mod:`.quartus`) exports an Avalon-MM master (an ``altera_avalon_mm_bridge``) that reaches the
@@ -30,10 +31,13 @@ from .avalon import AvalonLogger
 from .boards import BOARDS
 
 
-__all__ = ["CPU_MODULE", "PllConfig", "pll_config", "BoardTop"]
+__all__ = ["CPU_MODULE", "CPU_RESET_CLOCKS", "PllConfig", "pll_config", "BoardTop"]
 
 #: Module name of the NIOS II system Platform Designer generates.
 CPU_MODULE = "maglog_cpu"
+
+#: System clocks the NIOS II is held in reset after a watchdog expiry.
+CPU_RESET_CLOCKS = 4
 
 
 class PllConfig:
@@ -156,12 +160,20 @@ class BoardTop(Elaboratable):
 
         # The logger and the NIOS II system.
         m.submodules.logger = logger
+        # The NIOS II is reset with the logger: by the PLL's lock, and by a watchdog expiry
+        # (which resets the logger's body; the firmware restarts and reads the watchdog's
+        # reset_cause). The one-cycle `fire` is stretched to CPU_RESET_CLOCKS and ends in a
+        # register, so the system's asynchronous reset input sees a clean pulse.
+        fire = logger.logger.watchdog.fire
+        fired = Signal(CPU_RESET_CLOCKS - 1)
+        cpu_reset = Signal()
+        m.d.sync += [fired.eq(Cat(fire, fired[:-1])), cpu_reset.eq(fire | fired.any())]
         avs = logger.avs
         bridge_address = Signal(self.bridge_address_width)
         m.d.comb += avs.address.eq(bridge_address[2:])
         m.submodules.cpu = Instance(CPU_MODULE,
             i_clk_clk=ClockSignal("sync"),
-            i_reset_reset_n=~ResetSignal("sync"),
+            i_reset_reset_n=~(ResetSignal("sync") | cpu_reset),
             o_bridge_address=bridge_address,
             o_bridge_read=avs.read,
             o_bridge_write=avs.write,

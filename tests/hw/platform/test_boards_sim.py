@@ -17,9 +17,11 @@ from maglog.sw.regmap import RegisterMap
 FW_VALUE = 0x0ABCDE5      # state 5, error 0xDE, file 0xABC (logger.fw_status fields)
 
 
-def _cpu(address_width, id_addr, fw_addr):
+def _cpu(address_width, id_addr, fw_addr, wd_control, wd_status):
     """A NIOS II stand-in: reads logger.id, writes logger.fw_status and reads it back, each
-    as an Avalon-MM master must (command held while waitrequest, data on readdatavalid)."""
+    as an Avalon-MM master must (command held while waitrequest, data on readdatavalid);
+    then starts the watchdog with a 0 ms timeout and waits to be reset by it, and after the
+    reset reads fw_status (cleared with the logger) and the watchdog's reset_cause."""
     return f"""\
 `timescale 1ns/1ps
 module maglog_cpu(
@@ -60,6 +62,14 @@ module maglog_cpu(
         write({4 * fw_addr}, 32'h{FW_VALUE:08x});
         read({4 * fw_addr});
         $display("FW %08x", data);
+        write({4 * wd_control}, 32'h00000001);        // enable, timeout_ms 0
+        wait (reset_reset_n === 1'b0);
+        wait (reset_reset_n === 1'b1);
+        repeat (4) @(posedge clk_clk);
+        read({4 * fw_addr});
+        $display("FW AFTER %08x", data);
+        read({4 * wd_status});
+        $display("CAUSE %08x", data);
     end
 endmodule
 """
@@ -90,6 +100,7 @@ module tb;
     // A command is a clock edge with CS# low and RAS# CAS# WE# not 111 (NOP).
     integer first_command = -1, cycle = 0, nop_or_deselect = 0, clock_edges = 0;
     always @(posedge clk) cycle <= cycle + 1;
+    always @(negedge dut.cpu.reset_reset_n) if (cycle > 2) $display("CPU RESET %0d", cycle);
     always @(posedge sdram_clk) begin
         clock_edges = clock_edges + 1;
         if (first_command < 0 && cycle > 2) begin
@@ -121,13 +132,15 @@ def test_board_top_registers_and_sdram_pins(name, tmp_path, external):
     regs = RegisterMap(top.logger.csr_memory_map)
     (tmp_path / "top.v").write_text(files[f"{PROJECT_NAME}.v"])
     (tmp_path / "standins.v").write_text(MEGAFUNCTION_STANDINS)
-    (tmp_path / "cpu.v").write_text(_cpu(top.bridge_address_width, regs["logger_id"].address,
-                                         regs["logger_fw_status"].address))
+    (tmp_path / "cpu.v").write_text(_cpu(
+        top.bridge_address_width, regs["logger_id"].address, regs["logger_fw_status"].address,
+        regs["watchdog_control"].address, regs["watchdog_status"].address))
     # Cycles at 50 MHz: the power-up wait (the controller times it in refresh intervals).
     t = board.chip.timing
     power_up = round(t.power_up_us * 50)
     refresh = round(t.t_ref_ms * 1e-3 / board.chip.geometry.rows * 50e6)
-    (tmp_path / "tb.v").write_text(_bench(board, power_up + refresh + 400))
+    # The run also covers the watchdog's first millisecond tick (at most 1 ms after start).
+    (tmp_path / "tb.v").write_text(_bench(board, max(power_up + refresh, 50_000) + 1000))
     build = subprocess.run([iverilog, "-g2012", "-o", "sim.vvp", "-s", "tb", "tb.v", "cpu.v",
                             "standins.v", "top.v"], cwd=tmp_path, capture_output=True,
                            text=True, timeout=600)
@@ -138,6 +151,11 @@ def test_board_top_registers_and_sdram_pins(name, tmp_path, external):
     out = run.stdout
     assert f"ID {LOGGER_ID:08x}" in out, out
     assert f"FW {FW_VALUE:08x}" in out, out
+    # The watchdog resets the NIOS II (and the logger's body, so fw_status is 0 again) and
+    # says so in reset_cause.
+    resets = [int(c) for c in re.findall(r"CPU RESET (\d+)", out)]
+    assert len(resets) == 1 and resets[0] <= 50_000 + 1000, out
+    assert "FW AFTER 00000000" in out and "CAUSE 00000001" in out, out
     # Through the power-up time the pins carry NOP or deselect (levels as the chip reads
     # them: active-low pins not inverted twice), with the SDRAM clock running; the first
     # command is a PRECHARGE ALL (CS# RAS# CAS# WE# = 0 0 1 0, A10 high).
