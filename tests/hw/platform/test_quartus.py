@@ -429,3 +429,23 @@ def test_cli_hdl_build(tmp_path, capsys):
     args = parser.parse_args(["build", "--board", "de0nano", "-o", str(out), "--force"])
     args.func(args)
     assert "EP4CE22F17C6" in (out / f"{PROJECT_NAME}.qsf").read_text()
+
+
+def test_pll_config_ratios_and_limits():
+    from maglog.hw.platform.top import pll_config
+    config = pll_config(50e6, 100e6, 0)
+    assert config.frequency(0) == config.frequency(1) == 100e6
+    assert config.outputs[0][1:3] == (2, 1)
+    params = config.parameters()
+    assert params["clk0_multiply_by"] == 2 and params["port_clk2"] == "PORT_UNUSED"
+    with pytest.raises(ValueError, match="exceeds a period"):
+        pll_config(50e6, 50e6, -25)
+    with pytest.raises(ValueError, match="not a ratio"):
+        pll_config(50e6, 33.3e6, 0)
+
+
+def test_board_top_needs_a_uart_per_channel():
+    from maglog.hw.frontend import DEFAULT_CHANNELS
+    from maglog.hw.platform.top import BoardTop
+    with pytest.raises(ValueError, match="3 UART inputs"):
+        BoardTop("de0nano", channels=DEFAULT_CHANNELS[:2])
