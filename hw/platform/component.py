@@ -119,16 +119,18 @@ def hw_tcl(component):
     return "\n".join(lines)
 
 
-def c_header(component, *, prefix="maglog"):
+def c_header(component, *, prefix="maglog_avs"):
     """The register map as a C header whose ``<PREFIX>_<REG>_ADDR`` are **byte offsets**
-    from the component's base address (``IORD_32DIRECT(BASE, MAGLOG_LOGGER_ID_ADDR)``),
-    with field shifts and masks (:func:`maglog.sw.regmap.to_c_header`)."""
+    from the component's base address (``IORD_32DIRECT(BASE, MAGLOG_AVS_LOGGER_ID_ADDR)``),
+    with field shifts and masks (:func:`maglog.sw.regmap.to_c_header`). The prefix differs
+    from ``maglog hdl regmap --format c``'s (``MAGLOG_``, word addresses), so the two
+    headers can never be mistaken for one another, nor shadow each other's guard."""
     from ...sw.regmap import RegisterMap, to_c_header
     regs = [dataclasses.replace(reg, address=reg.address * WORD_BYTES)
             for reg in RegisterMap(component.csr_memory_map)]
     text = to_c_header(regs, prefix=prefix)
     first, rest = text.split("\n", 1)
-    base = f"{prefix.upper()}_0_BASE"
+    base = "MAGLOG_0_BASE"     # system.h's name for an instance named maglog_0
     intro = [
         f"/* Registers of the {TOPLEVEL_NAME} Platform Designer component, generated from",
         " * the gateware's memory map by `maglog hdl component`.",
@@ -170,7 +172,7 @@ Adding it to a NIOS II system
 
 Software
   #include "{HEADER_NAME}" and access whole words:
-      IORD_32DIRECT(BASE, MAGLOG_LOGGER_ID_ADDR) == {LOGGER_ID:#010x} ("{LOGGER_ID.to_bytes(4, "big").decode()}")
+      IORD_32DIRECT(BASE, MAGLOG_AVS_LOGGER_ID_ADDR) == {LOGGER_ID:#010x} ("{LOGGER_ID.to_bytes(4, "big").decode()}")
   The *_ADDR values are byte offsets from the component's base. A write with fewer than
   four byte enables (an 8- or 16-bit store) is accepted and changes nothing.
 

@@ -108,17 +108,17 @@ def test_c_header_offsets_are_bytes_of_the_register_map(folder):
     header = (folder / HEADER_NAME).read_text()
     regs = RegisterMap(AvalonLogger(**KWARGS).csr_memory_map)
     defined = {name: int(value, 16) for name, value in
-               re.findall(r"^#define MAGLOG_(\w+)_ADDR (0x[0-9a-f]+)u$", header, re.M)}
+               re.findall(r"^#define MAGLOG_AVS_(\w+)_ADDR (0x[0-9a-f]+)u$", header, re.M)}
     assert defined == {reg.name.upper(): 4 * reg.address for reg in regs}
     # Two channels: the front end's window has no third channel.
     assert "FRONTEND_CH1_DIVISOR" in defined and "FRONTEND_CH2_DIVISOR" not in defined
     for reg in regs:
         for field in reg.fields.values():
-            name = f"MAGLOG_{reg.name}_{field.name.replace('.', '_')}".upper()
+            name = f"MAGLOG_AVS_{reg.name}_{field.name.replace('.', '_')}".upper()
             assert f"#define {name}_SHIFT {field.offset}u\n" in header
             assert f"#define {name}_MASK {field.mask:#x}u\n" in header
     assert "BYTE OFFSETS" in header
-    assert header.count("#ifndef MAGLOG_REGS_H") == 1 and header.rstrip().endswith("*/")
+    assert header.count("#ifndef MAGLOG_AVS_REGS_H") == 1 and header.rstrip().endswith("*/")
 
 
 def test_readme_names_the_files_and_the_id(folder):
@@ -140,3 +140,13 @@ def test_verilog_is_lint_clean_but_for_the_project_waivers(folder, external):
                           capture_output=True, text=True, timeout=300)
     warnings = re.findall(r"^%Warning-.*$", proc.stderr, re.M)
     assert warnings == [] and proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_the_component_header_and_the_regmap_header_share_no_macro(folder):
+    # One holds byte offsets, the other word addresses: no name may mean both.
+    from maglog.sw.regmap import to_c_header
+    component = (folder / HEADER_NAME).read_text()
+    regmap = to_c_header(RegisterMap(AvalonLogger(**KWARGS).csr_memory_map), prefix="maglog")
+    macros = lambda text: set(re.findall(r"^#(?:define|ifndef) (\w+)", text, re.M))
+    assert macros(component) and macros(regmap)
+    assert not macros(component) & macros(regmap)
