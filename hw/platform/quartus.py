@@ -151,9 +151,6 @@ def qsf_settings(board):
         'set_global_assignment -name STRATIX_DEVICE_IO_STANDARD "3.3-V LVTTL"',
         f"set_global_assignment -name SDC_FILE {PROJECT_NAME}.sdc",
         f"set_global_assignment -name QIP_FILE {CPU_MODULE}/synthesis/{CPU_MODULE}.qip",
-        'set_global_assignment -name RESERVE_ALL_UNUSED_PINS_WEAK_PULLUP '
-        '"AS INPUT TRI-STATED WITH WEAK PULL-UP"',
-        "set_global_assignment -name OPTIMIZATION_MODE BALANCED",
     ]) + "\n"
 
 
