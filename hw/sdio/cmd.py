@@ -64,7 +64,8 @@ class CmdEngine(wiring.Component):
         ``done`` is a one-cycle strobe when the response has been checked.
     status : ``Out(CmdStatus)``
     response : ``Out(128)``
-        The last 128 bits received: for a 48-bit response its bits 47..0 sit in 47..0 (the
+        The last 128 bits received (never cleared: above a 48-bit response sit the bits of
+        earlier ones): for a 48-bit response its bits 47..0 sit in 47..0 (the
         card status or OCR in 39..8), for R2 the CID/CSD register's bits 127..1 and the end bit.
     """
     rise:     In(1)
@@ -90,17 +91,23 @@ class CmdEngine(wiring.Component):
         count   = Signal(range(arch.R2_BITS + 1))     # bits sent or received so far
         waited  = Signal(16)
         kind    = Signal(ResponseKind)
-        index   = Signal(arch.CMD_INDEX_BITS)
-        shreg   = Signal(arch.CMD_BITS - 8)           # start, transmission, index, argument
-        length  = Signal(range(arch.R2_BITS + 1))
+        long    = Signal()                            # kind == LONG, decoded once
+        index   = Signal(arch.CMD_INDEX_BITS, reset_less=True)
+        shreg   = Signal(arch.CMD_BITS - 8, reset_less=True)   # start, transmission,
+                                                               # index, argument
+        # The receive shift register, read as it is (a pure datapath: no reset, no clear).
+        response = Signal(arch.R2_CONTENT_BITS, reset_less=True)
+        m.d.comb += self.response.eq(response)
 
-        m.d.comb += self.busy.eq(state != _State.IDLE)
+        count_1 = Signal.like(count)                  # one incrementer for every state
+        m.d.comb += [self.busy.eq(state != _State.IDLE), count_1.eq(count + 1)]
         m.d.sync += self.done.eq(0)
 
         # The CRC covers the first 40 bits of a command or 48-bit response, and bits 8..127
         # of an R2 (its register contents without the CRC and end bit).
-        crc_first = Mux(kind == ResponseKind.LONG, arch.R2_CRC_FIRST, 0)
-        crc_last  = Mux(kind == ResponseKind.LONG, arch.R2_CRC_LAST, arch.CMD_CRC_LAST)
+        crc_span = Mux(long, (count >= arch.R2_CRC_FIRST) & (count < arch.R2_CRC_LAST),
+                       count < arch.CMD_CRC_LAST)
+        last_bit = Mux(long, count == arch.R2_BITS - 1, count == arch.CMD_BITS - 1)
 
         with m.Switch(state):
             with m.Case(_State.IDLE):
@@ -110,6 +117,7 @@ class CmdEngine(wiring.Component):
                         shreg.eq(Cat(self.argument, self.index, C(1, 1), C(0, 1))),
                         index.eq(self.index),
                         kind.eq(self.kind),
+                        long.eq(self.kind == ResponseKind.LONG),
                         count.eq(0),
                         self.status.eq(0),
                         state.eq(_State.SEND),
@@ -119,7 +127,7 @@ class CmdEngine(wiring.Component):
             with m.Case(_State.SEND):
                 # Puts a bit on CMD at each falling edge: 40 of command, 7 of CRC, the end bit.
                 with m.If(self.fall):
-                    m.d.sync += count.eq(count + 1)
+                    m.d.sync += count.eq(count_1)
                     with m.If(count < arch.CMD_CRC_LAST):
                         m.d.sync += [
                             self.cmd_oe.eq(1),
@@ -128,9 +136,9 @@ class CmdEngine(wiring.Component):
                         ]
                         m.d.comb += [crc.en.eq(1), crc.bit.eq(shreg[-1])]
                     with m.Elif(count < arch.CMD_BITS - 1):
-                        crc_bit = Signal(range(arch.CRC7_BITS))   # 6 down to 0
-                        m.d.comb += crc_bit.eq(arch.CMD_BITS - 2 - count)
-                        m.d.sync += self.cmd_o.eq(crc.crc.bit_select(crc_bit, 1))
+                        # The CRC goes out from its top bit; fed back into itself it shifts.
+                        m.d.sync += self.cmd_o.eq(crc.crc[-1])
+                        m.d.comb += [crc.en.eq(1), crc.bit.eq(crc.crc[-1])]
                     with m.Elif(count == arch.CMD_BITS - 1):
                         m.d.sync += self.cmd_o.eq(1)
                     with m.Else():
@@ -144,18 +152,17 @@ class CmdEngine(wiring.Component):
                         m.d.comb += crc.clear.eq(1)
 
             with m.Case(_State.WAIT):
-                # Waits for the response's start bit, at most `timeout` clocks.
+                # Waits for the response's start bit, at most `timeout` clocks (`waited`
+                # counts up from 0 one step at a time: equality is `>=`).
                 with m.If(self.rise):
                     with m.If(self.cmd_i == 0):
                         m.d.sync += [
                             count.eq(1),
-                            self.response.eq(0),
-                            length.eq(Mux(kind == ResponseKind.LONG, arch.R2_BITS,
-                                          arch.CMD_BITS)),
+                            response.eq(Cat(self.cmd_i, response[:-1])),   # the start bit, 0
                             state.eq(_State.RECEIVE),
                         ]
-                        m.d.comb += [crc.en.eq(kind != ResponseKind.LONG), crc.bit.eq(0)]
-                    with m.Elif(waited >= self.timeout):
+                        m.d.comb += [crc.en.eq(~long), crc.bit.eq(0)]
+                    with m.Elif(waited == self.timeout):
                         m.d.sync += [self.status.timeout.eq(1), count.eq(0),
                                      state.eq(_State.GAP), self.done.eq(1)]
                     with m.Else():
@@ -165,19 +172,16 @@ class CmdEngine(wiring.Component):
                 # Takes a bit at each rising edge until the response is complete.
                 with m.If(self.rise):
                     m.d.sync += [
-                        count.eq(count + 1),
-                        self.response.eq(Cat(self.cmd_i, self.response[:-1])),
+                        count.eq(count_1),
+                        response.eq(Cat(self.cmd_i, response[:-1])),
                     ]
-                    m.d.comb += [
-                        crc.en.eq((count >= crc_first) & (count < crc_last)),
-                        crc.bit.eq(self.cmd_i),
-                    ]
-                    with m.If(count == length - 1):
+                    m.d.comb += [crc.en.eq(crc_span), crc.bit.eq(self.cmd_i)]
+                    with m.If(last_bit):
                         # This is the end bit; the bits before it are in `response`.
-                        received_crc = self.response[:arch.CRC7_BITS]
+                        received_crc = response[:arch.CRC7_BITS]
                         checked = kind != ResponseKind.OCR
                         fmt_ok = Mux(kind == ResponseKind.SHORT,
-                                     (self.response[39:45] == index) & (self.response[45] == 0),
+                                     (response[39:45] == index) & (response[45] == 0),
                                      1)
                         m.d.sync += [
                             self.status.crc_error.eq(checked & (received_crc != crc.crc)),
@@ -191,7 +195,7 @@ class CmdEngine(wiring.Component):
             with m.Case(_State.GAP):
                 # Keeps N_CC clocks between this response and the next command.
                 with m.If(self.rise):
-                    m.d.sync += count.eq(count + 1)
+                    m.d.sync += count.eq(count_1)
                     with m.If(count == arch.N_CC - 1):
                         m.d.sync += state.eq(_State.IDLE)
 

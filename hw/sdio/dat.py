@@ -5,13 +5,21 @@ from amaranth.lib import data, enum, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from ..arch import sd as arch
+from .clock import TICK_CLOCKS
 from .crc import Crc16Lanes
 
 
-__all__ = ["WriteStatus", "DatWriter", "ReadStatus", "DatReader"]
+__all__ = ["BUSY_TIMEOUT_TICKS", "READ_TIMEOUT_TICKS", "WriteStatus", "DatWriter",
+           "ReadStatus", "DatReader"]
 
 LANES = 4
 ALL_LINES = (1 << LANES) - 1
+
+#: The default long timeouts in ticks of TICK_CLOCKS SD clocks (a timeout of N ticks ends
+#: N to N + 1 ticks after its start): the clocks of hw/arch, to within a tick.
+BUSY_TIMEOUT_TICKS = arch.BUSY_TIMEOUT_CLOCKS // TICK_CLOCKS
+READ_TIMEOUT_TICKS = arch.READ_TIMEOUT_CLOCKS // TICK_CLOCKS
+TIMEOUT_TICK_BITS = 16
 
 
 class WriteStatus(data.Struct):
@@ -48,6 +56,10 @@ class DatWriter(wiring.Component):
     follows without CPU help. A rejected block, a missing token or a busy timeout stops the
     run and is reported; ``accepted`` counts the blocks the card took.
 
+    ``wait_busy`` runs the busy wait alone, as after a block's token: the R1b busy after a
+    command (CMD7, CMD12). It changes neither ``accepted`` nor ``status``; its timeout shows
+    in ``r1b_timeout`` instead.
+
     When the next byte is not there in time the clock pauses (``run`` low) instead of
     sending a bit that is not ready.
 
@@ -59,11 +71,18 @@ class DatWriter(wiring.Component):
     i : ``In(stream.Signature(8))``
         The bytes of the blocks, in order.
     start : ``In(1)``; blocks : ``In(16)``
+    tick : ``In(1)``
+        :class:`~.clock.SdClock`'s ``tick``, with a ``rise`` every TICK_CLOCKS rising edges.
     token_timeout : ``In(8)``
         Clocks from the end bit to the token's start bit.
-    busy_timeout : ``In(32)``
-        Clocks of busy before giving up (250 ms at 25 MHz by default).
+    busy_timeout : ``In(16)``
+        Ticks of busy before giving up, counted from the token's end bit (or ``wait_busy``):
+        the wait ends N to N + 1 ticks after it (250 ms at 25 MHz by default).
+    wait_busy : ``In(1)``
+        Wait for the end of an R1b busy (ignored when busy).
     busy, done : ``Out(1)``; status : ``Out(WriteStatus)``; accepted : ``Out(16)``
+    r1b_timeout : ``Out(1)``
+        The last ``wait_busy`` ended by the busy timeout.
     """
     rise:          In(1)
     fall:          In(1)
@@ -74,12 +93,15 @@ class DatWriter(wiring.Component):
     i:             In(stream.Signature(8))
     start:         In(1)
     blocks:        In(16)
+    tick:          In(1)
     token_timeout: In(8, init=arch.TOKEN_TIMEOUT_CLOCKS)
-    busy_timeout:  In(32, init=arch.BUSY_TIMEOUT_CLOCKS)
+    busy_timeout:  In(TIMEOUT_TICK_BITS, init=BUSY_TIMEOUT_TICKS)
+    wait_busy:     In(1)
     busy:          Out(1)
     done:          Out(1)
     status:        Out(WriteStatus)
     accepted:      Out(16)
+    r1b_timeout:   Out(1)
 
     def elaborate(self, platform):
         m = Module()
@@ -88,150 +110,224 @@ class DatWriter(wiring.Component):
         state   = Signal(_WState)
         count   = Signal(range(arch.DATA_NIBBLES + 1))
         left    = Signal(16)                       # blocks still to send
-        waited  = Signal(32)
-        token   = Signal(arch.TOKEN_STATUS_BITS)
-        byte    = Signal(8)
+        waited  = Signal(8)                        # rising edges since the block's end,
+                                                   # then since the token's
+        ticks   = Signal(TIMEOUT_TICK_BITS)        # busy timeout ticks left
+        past    = Signal()                         # the busy timeout has run out
+        r1b     = Signal()                         # the busy wait is an R1b's
+        token   = Signal(arch.TOKEN_STATUS_BITS, reset_less=True)
+        byte    = Signal(8, reset_less=True)
         loaded  = Signal()                         # `byte` holds the next byte to send
         low     = Signal()                         # its high nibble has gone out
+
+        # The state machine below only decides; the registers are updated after it, each
+        # in one place, from these strobes.
+        count_clear = Signal()
+        count_step  = Signal()
+        waited_step = Signal()
+        reload      = Signal()                     # restart the busy timeout
+        block_done  = Signal()                     # busy over: the card took the block
+        finish      = Signal()                     # the run (or R1b wait) ends
+        flags       = Signal(WriteStatus)          # errors it ends with
+        next_state  = Signal(_WState)
+        m.d.comb += next_state.eq(state)
+
+        in_state = {s: state == s for s in _WState}
+        go_write = in_state[_WState.IDLE] & self.start & (self.blocks != 0)
+        go_busy  = in_state[_WState.IDLE] & self.wait_busy & ~go_write
 
         # A byte is wanted while this block's data goes out, and after it only if another
         # block follows (its first byte is then taken ahead, during the token and busy).
         wanted = Signal()
         m.d.comb += wanted.eq(
             state.as_value().matches(_WState.PREAMBLE, _WState.START, _WState.DATA) |
-            ((left > 1) & state.as_value().matches(_WState.CRC, _WState.END, _WState.RELEASE,
-                                                   _WState.TOKEN, _WState.BUSY_START,
-                                                   _WState.BUSY)))
+            (~r1b & (left > 1) &
+             state.as_value().matches(_WState.CRC, _WState.END, _WState.RELEASE,
+                                      _WState.TOKEN, _WState.BUSY_START, _WState.BUSY)))
         m.d.comb += [
-            self.busy.eq(state != _WState.IDLE),
+            self.busy.eq(~in_state[_WState.IDLE]),
             self.i.ready.eq(~loaded & wanted),
             # Pause before a rising edge if the falling edge after it needs a byte that has
             # not arrived (and is not arriving in this cycle).
-            self.run.eq(~((state == _WState.DATA) & ~low & ~loaded & ~self.i.valid &
+            self.run.eq(~(in_state[_WState.DATA] & ~low & ~loaded & ~self.i.valid &
                           (count < arch.DATA_NIBBLES))),
         ]
-        with m.If(self.i.valid & self.i.ready):
-            m.d.sync += [byte.eq(self.i.payload), loaded.eq(1)]
-        m.d.sync += self.done.eq(0)
 
-        def finish(**flags):
-            # A byte taken ahead for a block that will not be sent is dropped with the run:
-            # the next run starts from its own first byte.
-            m.d.sync += [state.eq(_WState.IDLE), self.done.eq(1), self.dat_oe.eq(0),
-                         self.dat_o.eq(ALL_LINES), loaded.eq(0)]
-            for name, value in flags.items():
-                m.d.sync += getattr(self.status, name).eq(value)
+        # The busy timeout: `ticks` counts down from `busy_timeout` and runs out at the next
+        # tick after it reached 0; `past` keeps that when it happens before BUSY (a timeout
+        # shorter than the busy start window ends at BUSY's first edge).
+        out = self.tick & (ticks == 0)
+        reached = past | out
+
+        nibble = Mux(low, byte[:4], byte[4:])
+        top = Cat(crc.crc[lane][-1] for lane in range(LANES))   # each line's next CRC bit
 
         with m.Switch(state):
             with m.Case(_WState.IDLE):
-                # Waits for a write.
-                with m.If(self.start & (self.blocks != 0)):
-                    m.d.sync += [left.eq(self.blocks), self.accepted.eq(0),
-                                 self.status.eq(0), count.eq(0), state.eq(_WState.PREAMBLE)]
+                # Waits for a write, or an R1b busy wait.
+                with m.If(go_write):
+                    m.d.comb += next_state.eq(_WState.PREAMBLE)
+                with m.Elif(go_busy):
+                    m.d.comb += next_state.eq(_WState.BUSY_START)
 
             with m.Case(_WState.PREAMBLE):
                 # Drives ones for N_WR clocks before the start bit.
                 with m.If(self.fall):
-                    m.d.sync += [self.dat_oe.eq(1), self.dat_o.eq(ALL_LINES),
-                                 count.eq(count + 1)]
+                    m.d.comb += count_step.eq(1)
                     with m.If(count == arch.N_WR - 1):
-                        m.d.sync += state.eq(_WState.START)
+                        m.d.comb += next_state.eq(_WState.START)
 
             with m.Case(_WState.START):
                 # Drives the start bit on all lines.
-                m.d.comb += crc.clear.eq(1)
                 with m.If(self.fall):
-                    m.d.sync += [self.dat_o.eq(0), count.eq(0), low.eq(0),
-                                 state.eq(_WState.DATA)]
+                    m.d.comb += [count_clear.eq(1), next_state.eq(_WState.DATA)]
 
             with m.Case(_WState.DATA):
                 # Drives a nibble at each falling edge, high nibble first.
                 with m.If(self.fall):
-                    nibble = Mux(low, byte[:4], byte[4:])
-                    m.d.sync += [self.dat_o.eq(nibble), low.eq(~low), count.eq(count + 1)]
-                    m.d.comb += [crc.en.eq(1), crc.bits.eq(nibble)]
-                    with m.If(low):
-                        m.d.sync += loaded.eq(0)
+                    m.d.comb += count_step.eq(1)
                     with m.If(count == arch.DATA_NIBBLES - 1):
-                        m.d.sync += [count.eq(0), state.eq(_WState.CRC)]
+                        m.d.comb += [count_clear.eq(1), next_state.eq(_WState.CRC)]
 
             with m.Case(_WState.CRC):
-                # Drives each line's CRC16, most significant bit first.
+                # Drives each line's CRC16, most significant bit first: its top bit, fed
+                # back into it, shifts the register up by one.
                 with m.If(self.fall):
-                    bit = Signal(range(arch.CRC16_BITS))
-                    m.d.comb += bit.eq(arch.CRC16_BITS - 1 - count)
-                    m.d.sync += [
-                        self.dat_o.eq(Cat(crc.crc[lane].bit_select(bit, 1)
-                                          for lane in range(LANES))),
-                        count.eq(count + 1),
-                    ]
+                    m.d.comb += count_step.eq(1)
                     with m.If(count == arch.CRC16_BITS - 1):
-                        m.d.sync += state.eq(_WState.END)
+                        m.d.comb += next_state.eq(_WState.END)
 
             with m.Case(_WState.END):
                 # Drives the end bit.
                 with m.If(self.fall):
-                    m.d.sync += [self.dat_o.eq(ALL_LINES), state.eq(_WState.RELEASE)]
+                    m.d.comb += next_state.eq(_WState.RELEASE)
 
             with m.Case(_WState.RELEASE):
                 # Releases the lines after the end bit has been sampled.
                 with m.If(self.fall):
-                    m.d.sync += [self.dat_oe.eq(0), waited.eq(0), state.eq(_WState.TOKEN),
-                                 count.eq(0)]
+                    m.d.comb += [count_clear.eq(1), next_state.eq(_WState.TOKEN)]
 
             with m.Case(_WState.TOKEN):
-                # Waits for the CRC status token on DAT0 and reads it.
+                # Waits for the CRC status token on DAT0 and reads it. (`waited` counts up
+                # from 0 one step at a time: equality is `>=`.)
                 with m.If(self.rise):
                     with m.If(count == 0):
+                        m.d.comb += waited_step.eq(1)
                         with m.If(self.dat_i[0] == 0):
-                            m.d.sync += count.eq(1)
-                        with m.Elif(waited >= self.token_timeout):
-                            finish(no_token=1)
-                        with m.Else():
-                            m.d.sync += waited.eq(waited + 1)
+                            m.d.comb += count_step.eq(1)
+                        with m.Elif(waited == self.token_timeout):
+                            m.d.comb += [finish.eq(1), flags.no_token.eq(1)]
                     with m.Elif(count <= arch.TOKEN_STATUS_BITS):
-                        m.d.sync += [token.eq(Cat(self.dat_i[0], token[:-1])),
-                                     count.eq(count + 1)]
+                        m.d.comb += count_step.eq(1)
                     with m.Else():
                         # The token's end bit.
                         with m.If(self.dat_i[0] != 1):
-                            finish(bad_token_end=1)
+                            m.d.comb += [finish.eq(1), flags.bad_token_end.eq(1)]
                         with m.Elif(token == arch.TOKEN_CRC_ERROR):
-                            finish(crc_rejected=1)
+                            m.d.comb += [finish.eq(1), flags.crc_rejected.eq(1)]
                         with m.Elif(token != arch.TOKEN_ACCEPTED):
-                            finish(write_error=1)
+                            m.d.comb += [finish.eq(1), flags.write_error.eq(1)]
                         with m.Else():
-                            m.d.sync += [waited.eq(0), count.eq(0),
-                                         state.eq(_WState.BUSY_START)]
-
-            def block_done():
-                m.d.sync += [self.accepted.eq(self.accepted + 1), left.eq(left - 1),
-                             count.eq(0)]
-                with m.If(left == 1):
-                    finish()
-                with m.Else():
-                    m.d.sync += state.eq(_WState.PREAMBLE)
+                            m.d.comb += [count_clear.eq(1), reload.eq(1),
+                                         next_state.eq(_WState.BUSY_START)]
 
             with m.Case(_WState.BUSY_START):
                 # Waits for the card to pull DAT0 low (busy): at the rising edges 1 to
                 # BUSY_START_CLOCKS + 1 after the token's end bit. DAT0 high at all of them:
                 # the card shows no busy, the block is programmed.
                 with m.If(self.rise):
-                    m.d.sync += waited.eq(waited + 1)
+                    m.d.comb += waited_step.eq(1)
                     with m.If(self.dat_i[0] == 0):
-                        m.d.sync += state.eq(_WState.BUSY)
-                    with m.Elif(waited >= arch.BUSY_START_CLOCKS):
-                        block_done()
+                        m.d.comb += next_state.eq(_WState.BUSY)
+                    with m.Elif(waited == arch.BUSY_START_CLOCKS):
+                        m.d.comb += block_done.eq(1)
 
             with m.Case(_WState.BUSY):
                 # Waits for the card to release DAT0 (programming done), with a timeout
                 # counted from the token's end bit.
                 with m.If(self.rise):
-                    m.d.sync += waited.eq(waited + 1)
                     with m.If(self.dat_i[0] == 1):
-                        block_done()
-                    with m.Elif(waited >= self.busy_timeout):
-                        finish(busy_timeout=1)
+                        m.d.comb += block_done.eq(1)
+                    with m.Elif(reached):
+                        m.d.comb += [finish.eq(1), flags.busy_timeout.eq(~r1b)]
+                        m.d.sync += self.r1b_timeout.eq(r1b)
+
+        # A block done ends an R1b wait, or the run after its last block.
+        block_counted = block_done & ~r1b
+        with m.If(block_done):
+            with m.If(r1b | (left == 1)):
+                m.d.comb += finish.eq(1)
+            with m.Else():
+                m.d.comb += next_state.eq(_WState.PREAMBLE)
+        with m.If(finish):
+            m.d.comb += next_state.eq(_WState.IDLE)
+        m.d.sync += [state.eq(next_state), self.done.eq(finish)]
+
+        # The registers.
+        with m.If(in_state[_WState.IDLE] | count_clear | block_done):
+            m.d.sync += count.eq(0)
+        with m.Elif(count_step):
+            m.d.sync += count.eq(count + 1)
+        with m.If(in_state[_WState.IDLE] | (self.fall & in_state[_WState.RELEASE]) | reload):
+            m.d.sync += waited.eq(0)
+        with m.Elif(waited_step):
+            m.d.sync += waited.eq(waited + 1)
+        with m.If(in_state[_WState.IDLE] | reload):
+            m.d.sync += ticks.eq(self.busy_timeout)
+        with m.Elif(self.tick & (ticks != 0)):
+            m.d.sync += ticks.eq(ticks - 1)
+        with m.If(in_state[_WState.IDLE] | in_state[_WState.TOKEN]):
+            m.d.sync += past.eq(0)
+        with m.Else():
+            m.d.sync += past.eq(reached)
+        with m.If(in_state[_WState.IDLE]):
+            m.d.sync += r1b.eq(~go_write)
+        with m.If(go_write):
+            m.d.sync += [left.eq(self.blocks), self.accepted.eq(0), self.status.eq(0)]
+        with m.Elif(block_counted):
+            m.d.sync += [left.eq(left - 1), self.accepted.eq(self.accepted + 1)]
+        with m.Elif(finish):
+            m.d.sync += self.status.eq(self.status.as_value() | flags.as_value())
+        with m.If(go_busy):
+            m.d.sync += self.r1b_timeout.eq(0)
+        with m.If(self.rise & in_state[_WState.TOKEN] & (count != 0) &
+                  (count <= arch.TOKEN_STATUS_BITS)):
+            m.d.sync += token.eq(Cat(self.dat_i[0], token[:-1]))
+
+        # The lines: driven from the first preamble bit to the end bit; each falling edge
+        # puts the next level on them.
+        with m.If(self.fall & in_state[_WState.PREAMBLE]):
+            m.d.sync += self.dat_oe.eq(1)
+        with m.If(self.fall & in_state[_WState.RELEASE]):
+            m.d.sync += self.dat_oe.eq(0)
+        with m.If(self.fall & state.as_value().matches(_WState.PREAMBLE, _WState.START,
+                                                       _WState.DATA, _WState.CRC,
+                                                       _WState.END)):
+            with m.Switch(state):
+                with m.Case(_WState.START):
+                    m.d.sync += self.dat_o.eq(0)
+                with m.Case(_WState.DATA):
+                    m.d.sync += self.dat_o.eq(nibble)
+                with m.Case(_WState.CRC):
+                    m.d.sync += self.dat_o.eq(top)
+                with m.Default():
+                    m.d.sync += self.dat_o.eq(ALL_LINES)
+        m.d.comb += [
+            crc.clear.eq(in_state[_WState.START]),
+            crc.en.eq(self.fall & (in_state[_WState.DATA] | in_state[_WState.CRC])),
+            crc.bits.eq(Mux(in_state[_WState.CRC], top, nibble)),
+        ]
+
+        # The byte to send: taken when wanted; a byte taken ahead for a block that will not
+        # be sent is dropped with the run (the next run starts from its own first byte).
+        with m.If(self.i.valid & self.i.ready):
+            m.d.sync += [byte.eq(self.i.payload), loaded.eq(1)]
+        with m.If((self.fall & in_state[_WState.DATA] & low) | finish):
+            m.d.sync += loaded.eq(0)
+        with m.If(self.fall & in_state[_WState.START]):
+            m.d.sync += low.eq(0)
+        with m.Elif(self.fall & in_state[_WState.DATA]):
+            m.d.sync += low.eq(~low)
 
         return m
 
@@ -259,9 +355,12 @@ class DatReader(wiring.Component):
     Members
     -------
     rise, fall : ``In(1)``; run : ``Out(1)``; dat_i : ``In(4)``
+    tick : ``In(1)``
+        :class:`~.clock.SdClock`'s ``tick``, with a ``rise`` every TICK_CLOCKS rising edges.
     start : ``In(1)``
-    timeout : ``In(32)``
-        Clocks to wait for the start bit (100 ms at 25 MHz by default, PLSS §4.6.2.1).
+    timeout : ``In(16)``
+        Ticks to wait for the start bit: the wait ends N to N + 1 ticks after ``start``
+        (100 ms at 25 MHz by default, PLSS §4.6.2.1).
     o : ``Out(stream.Signature(8))``
     busy, done : ``Out(1)``; status : ``Out(ReadStatus)``
     """
@@ -269,8 +368,9 @@ class DatReader(wiring.Component):
     fall:    In(1)
     run:     Out(1)
     dat_i:   In(LANES, init=ALL_LINES)
+    tick:    In(1)
     start:   In(1)
-    timeout: In(32, init=arch.READ_TIMEOUT_CLOCKS)
+    timeout: In(TIMEOUT_TICK_BITS, init=READ_TIMEOUT_TICKS)
     o:       Out(stream.Signature(8))
     busy:    Out(1)
     done:    Out(1)
@@ -281,60 +381,70 @@ class DatReader(wiring.Component):
         m.submodules.crc16 = crc = Crc16Lanes(LANES)
 
         state   = Signal(_RState)
-        count   = Signal(range(arch.DATA_NIBBLES + 1))
-        waited  = Signal(32)
-        high    = Signal(4)                  # the high nibble of the byte being received
+        count   = Signal(range(arch.DATA_NIBBLES))   # nibbles, then CRC bits (it wraps
+                                                     # to 0 after the last nibble)
+        ticks   = Signal(TIMEOUT_TICK_BITS)          # read timeout ticks left
+        high    = Signal(4, reset_less=True)   # the high nibble of the byte being received
+        payload = Signal(8, reset_less=True)
         mismatch = Signal()
+        m.d.comb += self.o.payload.eq(payload)
 
+        idle, wait, data, check = (state == s for s in _RState)
+        # Each line's next CRC bit: the received bits go into the CRC after the data too;
+        # while they match its top bit, it shifts up by one and its next top bit is the next
+        # one expected.
+        expected = Cat(crc.crc[lane][-1] for lane in range(LANES))
+        crc_bits = check & (count < arch.CRC16_BITS)
         m.d.comb += [
-            self.busy.eq(state != _RState.IDLE),
+            self.busy.eq(~idle),
             # Hold the clock while a received byte waits to be taken.
             self.run.eq(~(self.o.valid & ~self.o.ready)),
+            crc.clear.eq(idle),
+            crc.en.eq(self.rise & (data | crc_bits)),
+            crc.bits.eq(self.dat_i),
         ]
         with m.If(self.o.ready):
             m.d.sync += self.o.valid.eq(0)
+        with m.If(idle | wait):
+            m.d.sync += count.eq(0)
+        with m.Elif(self.rise):
+            m.d.sync += count.eq(count + 1)
+        with m.If(idle):
+            m.d.sync += ticks.eq(self.timeout)
+        with m.Elif(self.tick & (ticks != 0)):
+            m.d.sync += ticks.eq(ticks - 1)
         m.d.sync += self.done.eq(0)
 
         with m.Switch(state):
             with m.Case(_RState.IDLE):
                 # Waits for a read to be started (after the CMD17 was sent).
                 with m.If(self.start):
-                    m.d.sync += [waited.eq(0), self.status.eq(0), mismatch.eq(0),
-                                 state.eq(_RState.WAIT)]
-                m.d.comb += crc.clear.eq(1)
+                    m.d.sync += [self.status.eq(0), mismatch.eq(0), state.eq(_RState.WAIT)]
 
             with m.Case(_RState.WAIT):
                 # Waits for the start bit on all lines.
                 with m.If(self.rise):
                     with m.If(self.dat_i == 0):
-                        m.d.sync += [count.eq(0), state.eq(_RState.DATA)]
-                    with m.Elif(waited >= self.timeout):
+                        m.d.sync += state.eq(_RState.DATA)
+                    with m.Elif(self.tick & (ticks == 0)):
                         m.d.sync += [self.status.timeout.eq(1), self.done.eq(1),
                                      state.eq(_RState.IDLE)]
-                    with m.Else():
-                        m.d.sync += waited.eq(waited + 1)
 
             with m.Case(_RState.DATA):
                 # Takes a nibble at each rising edge; a byte per two.
                 with m.If(self.rise):
-                    m.d.comb += [crc.en.eq(1), crc.bits.eq(self.dat_i)]
-                    m.d.sync += count.eq(count + 1)
                     with m.If(count[0] == 0):
                         m.d.sync += high.eq(self.dat_i)
                     with m.Else():
-                        m.d.sync += [self.o.payload.eq(Cat(self.dat_i, high)),
+                        m.d.sync += [payload.eq(Cat(self.dat_i, high)),
                                      self.o.valid.eq(1)]
                     with m.If(count == arch.DATA_NIBBLES - 1):
-                        m.d.sync += [count.eq(0), state.eq(_RState.CRC)]
+                        m.d.sync += state.eq(_RState.CRC)
 
             with m.Case(_RState.CRC):
                 # Compares each line's CRC16 bit by bit, then checks the end bit.
                 with m.If(self.rise):
-                    m.d.sync += count.eq(count + 1)
-                    with m.If(count < arch.CRC16_BITS):
-                        bit = Signal(range(arch.CRC16_BITS))
-                        m.d.comb += bit.eq(arch.CRC16_BITS - 1 - count)
-                        expected = Cat(crc.crc[lane].bit_select(bit, 1) for lane in range(LANES))
+                    with m.If(crc_bits):
                         with m.If(expected != self.dat_i):
                             m.d.sync += mismatch.eq(1)
                     with m.Else():

@@ -6,9 +6,10 @@ from amaranth.lib.wiring import In, Out
 
 from ..arch import sd as arch
 from ..soc import csr
-from .clock import SdClock
+from .clock import TICK_CLOCKS, SdClock
 from .cmd import CmdEngine, CmdStatus, ResponseKind
-from .dat import DatReader, DatWriter, ReadStatus, WriteStatus
+from .dat import (BUSY_TIMEOUT_TICKS, READ_TIMEOUT_TICKS, TIMEOUT_TICK_BITS, DatReader,
+                  DatWriter, ReadStatus, WriteStatus)
 
 
 __all__ = ["DataPhase", "sd_pins_signature", "SdioHost"]
@@ -45,12 +46,6 @@ class DataPhase(enum.Enum, shape=2):
     READ  = arch.DataPhase.READ.value    # read one block to `o`; armed when the command starts
 
 
-class _Busy(enum.Enum, shape=2):
-    IDLE  = 0    # no R1b busy wait under way
-    START = 1    # waits for busy (DAT0 low) to begin, BUSY_START_CLOCKS at most
-    WAIT  = 2    # waits for the end of busy (DAT0 high), up to the busy timeout
-
-
 class SdioHost(wiring.Component):
     """4-bit SD host for the logger: the CPU sets up commands over CSR registers, block
     data moves through streams (``i`` for writes, from the DMA; ``o`` for reads).
@@ -58,7 +53,8 @@ class SdioHost(wiring.Component):
     Writing ``command`` sends it with ``argument``; its ``data`` field chains a data phase
     and ``r1b`` a wait for the end of busy on DAT0 (after CMD7, CMD12). ``status`` shows the
     engines busy and every error bit of the last command and transfer; nothing is retried in
-    gateware, so the driver sees every failure.
+    gateware, so the driver sees every failure. The settings are write-only (the firmware
+    never reads them back): only the status, the accepted count and the response read.
 
     Members
     -------
@@ -73,15 +69,15 @@ class SdioHost(wiring.Component):
     o:   Out(stream.Signature(8))
     sd:  Out(sd_pins_signature())
 
-    class Clock(csr.Register, access="rw"):
+    class Clock(csr.Register, access="w"):
         """SD clock: f_sys / (2 * (divisor + 1)); `run` keeps it running while idle (the
         74 clocks of power-up, and between commands)."""
-        divisor: csr.Field(csr.action.RW, DIVISOR_BITS)
-        run:     csr.Field(csr.action.RW, 1)
+        divisor: csr.Field(csr.action.W, DIVISOR_BITS)
+        run:     csr.Field(csr.action.W, 1)
 
-    class Argument(csr.Register, access="rw"):
+    class Argument(csr.Register, access="w"):
         """Argument of the next command."""
-        value: csr.Field(csr.action.RW, arch.CMD_ARGUMENT_BITS)
+        value: csr.Field(csr.action.W, arch.CMD_ARGUMENT_BITS)
 
     class Command(csr.Register, access="w"):
         """Writing sends a command: its index, the response expected, whether to wait for
@@ -91,21 +87,24 @@ class SdioHost(wiring.Component):
         r1b:   csr.Field(csr.action.W, 1)
         data:  csr.Field(csr.action.W, DataPhase)
 
-    class Blocks(csr.Register, access="rw"):
-        """Blocks to write in the next write data phase."""
-        count: csr.Field(csr.action.RW, 16, init=1)
+    class Blocks(csr.Register, access="w"):
+        """Blocks to write in the next write data phase (1 after reset)."""
+        count: csr.Field(csr.action.W, 16)
 
-    class Timeouts(csr.Register, access="rw"):
-        """Response timeout, in SD clocks (N_CR)."""
-        response: csr.Field(csr.action.RW, 16, init=arch.N_CR_MAX)
+    class Timeouts(csr.Register, access="w"):
+        """Response timeout, in SD clocks (N_CR; 64 after reset)."""
+        response: csr.Field(csr.action.W, 16)
 
-    class BusyTimeout(csr.Register, access="rw"):
-        """Busy timeout in SD clocks, after a block or an R1b (250 ms at 25 MHz)."""
-        clocks: csr.Field(csr.action.RW, 32, init=arch.BUSY_TIMEOUT_CLOCKS)
+    class BusyTimeout(csr.Register, access="w"):
+        """Busy timeout after a block or an R1b, in ticks of 256 SD clocks: it ends N to
+        N + 1 ticks after the block's token or the R1b response (250 ms at 25 MHz after
+        reset)."""
+        ticks: csr.Field(csr.action.W, TIMEOUT_TICK_BITS)
 
-    class ReadTimeout(csr.Register, access="rw"):
-        """Read access timeout in SD clocks (100 ms at 25 MHz)."""
-        clocks: csr.Field(csr.action.RW, 32, init=arch.READ_TIMEOUT_CLOCKS)
+    class ReadTimeout(csr.Register, access="w"):
+        """Read access timeout, in ticks of 256 SD clocks: it ends N to N + 1 ticks after
+        the read command is written (100 ms at 25 MHz after reset)."""
+        ticks: csr.Field(csr.action.W, TIMEOUT_TICK_BITS)
 
     class Status(csr.Register, access="r"):
         """Engines busy, and the errors of the last command, write and read."""
@@ -170,18 +169,36 @@ class SdioHost(wiring.Component):
         wiring.connect(m, wiring.flipped(self.i), writer.i)
         wiring.connect(m, reader.o, wiring.flipped(self.o))
 
-        # Settings.
+        # Settings: write-only, kept here (the argument is pure data, without a reset).
+        divisor      = Signal(DIVISOR_BITS)
+        run          = Signal()
+        argument     = Signal(arch.CMD_ARGUMENT_BITS, reset_less=True)
+        blocks       = Signal(16, init=1)
+        timeout      = Signal(16, init=arch.N_CR_MAX)
+        busy_timeout = Signal(TIMEOUT_TICK_BITS, init=BUSY_TIMEOUT_TICKS)
+        read_timeout = Signal(TIMEOUT_TICK_BITS, init=READ_TIMEOUT_TICKS)
+        for field, target in ((self._clock.f.divisor, divisor), (self._clock.f.run, run),
+                              (self._argument.f.value, argument),
+                              (self._blocks.f.count, blocks),
+                              (self._timeouts.f.response, timeout),
+                              (self._busy_timeout.f.ticks, busy_timeout),
+                              (self._read_timeout.f.ticks, read_timeout)):
+            with m.If(field.w_stb):
+                m.d.sync += target.eq(field.w_data)
         m.d.comb += [
-            clock.divisor.eq(self._clock.f.divisor.data),
-            cmd.argument.eq(self._argument.f.value.data),
-            cmd.timeout.eq(self._timeouts.f.response.data),
-            writer.blocks.eq(self._blocks.f.count.data),
-            writer.busy_timeout.eq(self._busy_timeout.f.clocks.data),
-            reader.timeout.eq(self._read_timeout.f.clocks.data),
+            clock.divisor.eq(divisor),
+            cmd.argument.eq(argument),
+            cmd.timeout.eq(timeout),
+            writer.blocks.eq(blocks),
+            writer.tick.eq(clock.tick),
+            writer.busy_timeout.eq(busy_timeout),
+            reader.tick.eq(clock.tick),
+            reader.timeout.eq(read_timeout),
         ]
 
         # A command write starts the CMD engine (and arms a read at once: the card may start
-        # its block soon after the response); a write data phase waits for a good response.
+        # its block soon after the response); after a good response a write data phase
+        # starts, or the R1b busy wait (the writer's busy wait, without a block).
         phase   = Signal(DataPhase)
         r1b     = Signal()
         pending = Signal()           # a data phase or busy wait waits for the response
@@ -199,9 +216,6 @@ class SdioHost(wiring.Component):
                 pending.eq(1),
             ]
 
-        busy_state   = Signal(_Busy)
-        busy_waited  = Signal(32)
-        busy_timeout = Signal()
         response_ok = ~cmd.status.as_value().any()
         with m.If(pending & cmd.done):
             m.d.sync += pending.eq(0)
@@ -209,29 +223,10 @@ class SdioHost(wiring.Component):
                 with m.If(phase == DataPhase.WRITE):
                     m.d.comb += writer.start.eq(1)
                 with m.Elif(r1b):
-                    m.d.sync += [busy_state.eq(_Busy.START), busy_waited.eq(0),
-                                 busy_timeout.eq(0)]
+                    m.d.comb += writer.wait_busy.eq(1)
 
-        # R1b: busy begins within BUSY_START_CLOCKS clocks of the response's end bit (or not
-        # at all: the card has nothing to do), then lasts until DAT0 is high again.
-        with m.Switch(busy_state):
-            with m.Case(_Busy.START):
-                with m.If(clock.rise):
-                    m.d.sync += busy_waited.eq(busy_waited + 1)
-                    with m.If(self.sd.dat_i[0] == 0):
-                        m.d.sync += busy_state.eq(_Busy.WAIT)
-                    with m.Elif(busy_waited >= arch.BUSY_START_CLOCKS):
-                        m.d.sync += busy_state.eq(_Busy.IDLE)
-            with m.Case(_Busy.WAIT):
-                with m.If(clock.rise):
-                    m.d.sync += busy_waited.eq(busy_waited + 1)
-                    with m.If(self.sd.dat_i[0] == 1):
-                        m.d.sync += busy_state.eq(_Busy.IDLE)
-                    with m.Elif(busy_waited >= self._busy_timeout.f.clocks.data):
-                        m.d.sync += [busy_state.eq(_Busy.IDLE), busy_timeout.eq(1)]
-
-        dat_busy = writer.busy | reader.busy | (busy_state != _Busy.IDLE)
-        m.d.comb += clock.run.eq((self._clock.f.run.data | cmd.busy | dat_busy | pending) &
+        dat_busy = writer.busy | reader.busy
+        m.d.comb += clock.run.eq((run | cmd.busy | dat_busy | pending) &
                                  writer.run & reader.run)
 
         # Status and results.
@@ -242,7 +237,7 @@ class SdioHost(wiring.Component):
             status.cmd.r_data.eq(cmd.status),
             status.write.r_data.eq(writer.status),
             status.read.r_data.eq(reader.status),
-            status.busy_timeout.r_data.eq(busy_timeout),
+            status.busy_timeout.r_data.eq(writer.r1b_timeout),
             status.dat_level.r_data.eq(self.sd.dat_i),
             self._accepted.f.count.r_data.eq(writer.accepted),
         ]

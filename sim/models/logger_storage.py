@@ -13,6 +13,8 @@ from collections import deque
 
 from ...hw.arch import sd as arch_sd
 from ...hw.dma import DmaSource
+from ...hw.sdio.clock import TICK_CLOCKS
+from ...hw.sdio.dat import BUSY_TIMEOUT_TICKS, READ_TIMEOUT_TICKS
 from .logger_sd import crc7
 
 
@@ -139,8 +141,10 @@ class StoragePath:
         self._sd_divisor, self._sd_run = 0, 0
         self._argument, self._blocks = 0, 1
         self._response_timeout = arch_sd.N_CR_MAX
-        self._busy_timeout = arch_sd.BUSY_TIMEOUT_CLOCKS
-        self._read_timeout = arch_sd.READ_TIMEOUT_CLOCKS
+        # (In SD clocks. The host counts these timeouts in ticks of TICK_CLOCKS and ends
+        # them N to N + 1 ticks after their start; the model takes the shortest, N ticks.)
+        self._busy_timeout = BUSY_TIMEOUT_TICKS * TICK_CLOCKS
+        self._read_timeout = READ_TIMEOUT_TICKS * TICK_CLOCKS
         self._cmd_status = dict.fromkeys(_CMD_FLAGS, 0)
         self._write_status = dict.fromkeys(_WRITE_FLAGS, 0)
         self._read_status = dict.fromkeys(_READ_FLAGS, 0)
@@ -317,15 +321,9 @@ class StoragePath:
             self.m._event("dma_done")
         return data
 
-    # -- registers: window sdio
-    def _r_sdio_clock(self):
-        return {"divisor": self._sd_divisor, "run": self._sd_run}
-
+    # -- registers: window sdio (the settings are write-only)
     def _w_sdio_clock(self, f):
         self._sd_divisor, self._sd_run = f["divisor"], f["run"]
-
-    def _r_sdio_argument(self):
-        return {"value": self._argument}
 
     def _w_sdio_argument(self, f):
         self._argument = f["value"]
@@ -333,29 +331,17 @@ class StoragePath:
     def _w_sdio_command(self, f):
         self._sd_command(f["index"], f["kind"], f["r1b"], f["data"])
 
-    def _r_sdio_blocks(self):
-        return {"count": self._blocks}
-
     def _w_sdio_blocks(self, f):
         self._blocks = f["count"]
-
-    def _r_sdio_timeouts(self):
-        return {"response": self._response_timeout}
 
     def _w_sdio_timeouts(self, f):
         self._response_timeout = f["response"]
 
-    def _r_sdio_busy_timeout(self):
-        return {"clocks": self._busy_timeout}
-
     def _w_sdio_busy_timeout(self, f):
-        self._busy_timeout = f["clocks"]
-
-    def _r_sdio_read_timeout(self):
-        return {"clocks": self._read_timeout}
+        self._busy_timeout = f["ticks"] * TICK_CLOCKS
 
     def _w_sdio_read_timeout(self, f):
-        self._read_timeout = f["clocks"]
+        self._read_timeout = f["ticks"] * TICK_CLOCKS
 
     def _r_sdio_status(self):
         fields = {"cmd_busy": int(self.m.now < self.cmd_free),

@@ -84,8 +84,8 @@ SDIO_FIELDS = {
     "command": {"index": (0, 6), "kind": (6, 2), "r1b": (8, 1), "data": (9, 2)},
     "blocks": {"count": (0, 16)},
     "timeouts": {"response": (0, 16)},
-    "busy_timeout": {"clocks": (0, 32)},
-    "read_timeout": {"clocks": (0, 32)},
+    "busy_timeout": {"ticks": (0, 16)},
+    "read_timeout": {"ticks": (0, 16)},
     "status": {
         "cmd_busy": (0, 1), "dat_busy": (1, 1),
         "cmd.timeout": (2, 1), "cmd.crc_error": (3, 1), "cmd.format_error": (4, 1),

@@ -13,7 +13,7 @@ from amaranth.lib import wiring
 from amaranth.lib.wiring import In, Out
 
 from maglog.hw.arch import sd as arch
-from maglog.hw.sdio.clock import SdClock
+from maglog.hw.sdio.clock import TICK_CLOCKS, SdClock
 from maglog.hw.sdio.dat import DatReader, DatWriter
 from maglog.sim.backends.amaranth import collect_payloads, feed_stream, run_simulation
 
@@ -45,6 +45,7 @@ class Harness(wiring.Component):
             self.clk.eq(self.clock.clk),
             self.engine.rise.eq(self.clock.rise),
             self.engine.fall.eq(self.clock.fall),
+            self.engine.tick.eq(self.clock.tick),
         ]
         with m.If(self.clock.rise):
             m.d.sync += self.rises.eq(self.rises + 1)
@@ -97,7 +98,7 @@ class CardSide:
                 nibbles = None
 
 
-def write_blocks(blocks, *, card=None, divisor=0, hold=None, busy_timeout=10_000,
+def write_blocks(blocks, *, card=None, divisor=0, hold=None, busy_timeout=100,
                  count=None):
     engine = DatWriter()
     dut = Harness(engine)
@@ -170,7 +171,7 @@ def test_no_byte_is_taken_beyond_the_run():
     taken = []
 
     async def host(ctx):
-        ctx.set(engine.busy_timeout, 10_000)
+        ctx.set(engine.busy_timeout, 100)
         ctx.set(engine.blocks, 2)
         ctx.set(engine.start, 1)
         await ctx.tick()
@@ -218,15 +219,78 @@ def test_missing_token_is_an_error():
     assert result["status"].no_token == 1 and result["accepted"] == 0
 
 
-def test_busy_past_the_timeout():
-    card, result = write_blocks(random_blocks(14, 1), card=CardSide(busy=500),
-                                busy_timeout=100)
-    assert result["status"].busy_timeout == 1 and result["accepted"] == 0
+# The busy timeout is counted in ticks of TICK_CLOCKS SD clocks from the token's end bit:
+# N ticks end N to N + 1 ticks later. The card's busy starts 1 clock after the token.
+@pytest.mark.parametrize("ticks, busy, timed_out", [
+    (2, 2 * TICK_CLOCKS - 4, False),        # ends just before the timeout can run out
+    (2, 3 * TICK_CLOCKS + 4, True),         # outlasts the longest the timeout can last
+    (0, TICK_CLOCKS + 4, True),
+])
+def test_busy_timeout(ticks, busy, timed_out):
+    card, result = write_blocks(random_blocks(14, 2), card=CardSide(busy=busy),
+                                busy_timeout=ticks)
+    assert result["status"].busy_timeout == timed_out
+    assert result["accepted"] == (0 if timed_out else 2)
+    assert result["flags"] == (1 << 4 if timed_out else 0)     # WriteStatus.busy_timeout
+    assert len(card.blocks) == (1 if timed_out else 2)
+
+
+def r1b_wait(*, busy, ticks, start=1, status_before=0):
+    """DatWriter's R1b busy wait alone: DAT0 goes low ``start`` clocks after ``wait_busy``
+    for ``busy`` clocks (``busy=None``: never)."""
+    engine = DatWriter()
+    dut = Harness(engine)
+    result = {}
+
+    async def host(ctx):
+        ctx.set(dut.divisor, 0)
+        ctx.set(engine.busy_timeout, ticks)
+        ctx.set(engine.wait_busy, 1)
+        await ctx.tick()
+        ctx.set(engine.wait_busy, 0)
+        result["busy"] = ctx.get(engine.busy)
+        first = ctx.get(dut.rises)
+        await ctx.tick().until(engine.done)
+        result.update(rises=ctx.get(dut.rises) - first, r1b_timeout=ctx.get(engine.r1b_timeout),
+                      flags=ctx.get(engine.status.as_value()), accepted=ctx.get(engine.accepted),
+                      ready=ctx.get(engine.i.ready))
+        await ctx.tick().repeat(10)
+        result["busy_after"] = ctx.get(engine.busy)
+
+    async def card(ctx):
+        levels = [1] * start + ([0] * busy if busy is not None else [0] * 100_000)
+        while True:
+            await ctx.posedge(dut.clk)
+            ctx.set(engine.dat_i, 0b1110 | (levels.pop(0) if levels else 1))
+
+    async def source(ctx):
+        ctx.set(engine.i.valid, 1)          # a byte on offer must not be taken
+
+    run_simulation(dut, [host], background=[card, source], name="dat_r1b", deadline=5e-3)
+    return result
+
+
+@pytest.mark.parametrize("busy, ticks, timed_out", [
+    (2 * TICK_CLOCKS - 4, 2, False),
+    (None, 2, True),
+    (0, 0, False),                          # no busy at all: done after the start window
+])
+def test_r1b_busy_wait(busy, ticks, timed_out):
+    result = r1b_wait(busy=busy, ticks=ticks)
+    assert result["busy"] and not result["busy_after"]
+    assert result["r1b_timeout"] == timed_out
+    assert result["flags"] == 0 and result["accepted"] == 0 and not result["ready"]
+    if timed_out:
+        assert ticks * TICK_CLOCKS <= result["rises"] <= (ticks + 1) * TICK_CLOCKS + 2
+    elif busy:
+        assert busy <= result["rises"] <= busy + 4
+    else:
+        assert result["rises"] <= arch.BUSY_START_CLOCKS + 2
 
 
 # --- reader ---------------------------------------------------------------------------------
 
-def read_block(block, *, corrupt=None, bad_end=False, delay=5, ready=None, timeout=1000,
+def read_block(block, *, corrupt=None, bad_end=False, delay=5, ready=None, timeout=4,
                send=True):
     engine = DatReader()
     dut = Harness(engine)
@@ -286,5 +350,17 @@ def test_read_block_crc_error(where):
 def test_read_block_end_bit_and_timeout():
     _, status, _ = read_block(random_blocks(24, 1)[0], bad_end=True)
     assert status.end_error == 1
-    _, status, _ = read_block(random_blocks(25, 1)[0], send=False, timeout=50)
+    _, status, _ = read_block(random_blocks(25, 1)[0], send=False, timeout=2)
     assert status.timeout == 1
+
+
+# The read timeout: N ticks of TICK_CLOCKS SD clocks end N to N + 1 ticks after `start`.
+@pytest.mark.parametrize("delay, timed_out", [
+    (2 * TICK_CLOCKS - 4, False),           # the start bit just before it can run out
+    (3 * TICK_CLOCKS + 4, True),            # after the longest it can last
+])
+def test_read_timeout_in_ticks(delay, timed_out):
+    block = random_blocks(26, 1)[0]
+    data, status, _ = read_block(block, delay=delay, timeout=2)
+    assert status.timeout == timed_out
+    assert data == (b"" if timed_out else block)

@@ -5,8 +5,8 @@ stay released while the card answers, and ``busy``/``done`` bracket a run.
 The writer's inputs are free, with what its neighbours guarantee assumed: ``rise`` and
 ``fall`` alternate, never in the same cycle, and a rise only comes while ``run`` is high (as
 SdClock makes them, at any divisor, 0 included); ``i`` obeys the stream rules (a byte offered
-stays, unchanged, until taken); ``blocks`` is at least 1. ``dat_i``, ``start`` and both
-timeouts are free in every cycle.
+stays, unchanged, until taken); ``blocks`` is at least 1. ``dat_i``, ``start``,
+``wait_busy``, ``tick`` and both timeouts are free in every cycle.
 
 A monitor in the harness follows the lines as the card sees them: one step per falling
 edge, in the cycle after the strobe, when the writer's registered outputs show the new level.
@@ -36,7 +36,7 @@ Properties (each a group of ``Assert``\\ s, selected by name):
     low.
 ``busy``
     ``dat_oe`` is never high while the writer is idle; ``busy`` rises exactly one cycle
-    after a ``start`` while idle and falls exactly when ``done`` pulses.
+    after a ``start`` or ``wait_busy`` while idle and falls exactly when ``done`` pulses.
 
 A block is ``DATA_NIBBLES`` (1024) falling edges long, far too deep for bounded checks from
 reset; ``mode prove`` (k-induction) closes because of invariants that tie the monitor, the
@@ -282,8 +282,8 @@ class DatWriterSpec(Elaboratable):
     def ports(self):
         d = self.dut
         return [d.rise, d.fall, d.run, d.dat_o, d.dat_oe, d.dat_i, d.i.valid, d.i.ready,
-                d.i.payload, d.start, d.blocks, d.token_timeout, d.busy_timeout, d.busy,
-                d.done, d.status.as_value(), d.accepted]
+                d.i.payload, d.start, d.blocks, d.tick, d.token_timeout, d.busy_timeout,
+                d.wait_busy, d.busy, d.done, d.status.as_value(), d.accepted, d.r1b_timeout]
 
     def script(self):
         """Yosys commands for sby's script: from anywhere, only ``first_cycle`` keeps its
@@ -437,7 +437,7 @@ class DatWriterSpec(Elaboratable):
               "released_for_card")
         busy_before = Signal()
         start_before = Signal()
-        m.d.sync += [busy_before.eq(dut.busy), start_before.eq(dut.start)]
+        m.d.sync += [busy_before.eq(dut.busy), start_before.eq(dut.start | dut.wait_busy)]
         check("busy", dut.busy | ~dut.dat_oe)
         check("busy", (dut.busy & ~busy_before) == (start_before & ~busy_before))
         check("busy", dut.done == (busy_before & ~dut.busy))
@@ -448,6 +448,9 @@ class DatWriterSpec(Elaboratable):
             return test if count is None else test & (next_count == count)
 
         crc_matches = Cat(w.crc[lane] == next_ref[lane] for lane in range(LANES)).all()
+        # While the CRC goes out, the writer's CRC registers shift up, one bit per bit sent.
+        crc_shifted = Cat(w.crc[lane] == (next_ref[lane] << w.count)[:arch.CRC16_BITS]
+                          for lane in range(LANES)).all()
         released = ~w.dat_oe & (w.dat_o == ALL_LINES)
         with m.Switch(w.state):
             with m.Case(state.IDLE, state.TOKEN, state.BUSY_START, state.BUSY):
@@ -465,11 +468,11 @@ class DatWriterSpec(Elaboratable):
                 invariant(Mux(w.count == 0, at(_Phase.START) & (w.dat_o == 0),
                               at(_Phase.DATA, w.count)))
             with m.Case(state.CRC):
-                invariant((w.count < arch.CRC16_BITS) & w.dat_oe & ~w.low & crc_matches)
+                invariant((w.count < arch.CRC16_BITS) & w.dat_oe & ~w.low & crc_shifted)
                 invariant(Mux(w.count == 0, at(_Phase.DATA, arch.DATA_NIBBLES),
                               at(_Phase.CRC, w.count)))
             with m.Case(state.END):
-                invariant((w.count == arch.CRC16_BITS) & w.dat_oe & ~w.low & crc_matches &
+                invariant((w.count == arch.CRC16_BITS) & w.dat_oe & ~w.low & crc_shifted &
                           at(_Phase.CRC, arch.CRC16_BITS))
             with m.Case(state.RELEASE):
                 invariant(w.dat_oe & (w.dat_o == ALL_LINES) & ~w.low & at(_Phase.END))

@@ -136,8 +136,10 @@ def test_busy_past_the_timeout_is_reported_with_the_blocks_written():
 
     async def firmware(driver):
         await driver.initialise()
-        # Shorten the busy timeout so that the simulation stays short.
-        await driver.bus.write(driver.regs["busy_timeout"].address, 1000)
+        # Shorten the busy timeout so that the simulation stays short: 4 ticks of 256 SD
+        # clocks (1024 to 1280 clocks), against the card's 3000.
+        busy_timeout = driver.regs["busy_timeout"]
+        await driver.bus.write(busy_timeout.address, busy_timeout.encode(ticks=4))
         return await driver.write_blocks(700, data)
 
     out = run(firmware, card)
