@@ -34,7 +34,8 @@ class RingPort(wiring.Signature):
     level, high_water : ``In(level_bits)``
         Committed bytes not yet released; the most there ever were.
     kept, dropped : ``In(32)``
-        Frames stored; frames dropped because the ring was full.
+        Frames stored; frames dropped because the ring was full (each counted the clock
+        after its last byte).
     """
     def __init__(self, level_bits):
         if not isinstance(level_bits, int) or level_bits < 1:
@@ -129,11 +130,19 @@ class RingBuffer(wiring.Component):
         commit = Signal(bits)      # end of the last whole frame
         rd = Signal(sbits)         # first sector not yet released
         dropping = Signal()        # skipping the rest of a frame that did not fit
+        keep_event, drop_event = Signal(), Signal()
+        m.d.sync += [keep_event.eq(0), drop_event.eq(0)]
 
         # Committed bytes not yet released: the low bits of `commit` as they are.
         m.d.comb += port.level.eq(Cat(commit[:sector_bits], commit[sector_bits:] - rd))
-        with m.If(port.level > port.high_water):
-            m.d.sync += port.high_water.eq(port.level)
+        # The high-water mark is taken from the level, with no reset of its own: the clock
+        # after a reset it takes the level, zero then.
+        high_water = Signal(bits, reset_less=True)
+        restart = Signal(init=1)
+        m.d.sync += restart.eq(0)
+        m.d.comb += port.high_water.eq(high_water)
+        with m.If((port.level > high_water) | restart):
+            m.d.sync += high_water.eq(port.level)
 
         # Write side: a byte per word write, with only its lane enabled. Full: the write
         # pointer is the read pointer plus the capacity, i.e. equal to it but for the top bit.
@@ -149,14 +158,20 @@ class RingBuffer(wiring.Component):
             with m.Elif(full):
                 # No room: the frame so far is forgotten, the rest skipped.
                 m.d.comb += self.i.ready.eq(1)
-                m.d.sync += [wr.eq(commit), port.dropped.eq(port.dropped + 1),
+                m.d.sync += [wr.eq(commit), drop_event.eq(1),
                              dropping.eq(~self.i.payload.last)]
             with m.Else():
                 m.d.comb += [write_valid.eq(1), self.i.ready.eq(write_taken)]
                 with m.If(write_taken):
                     m.d.sync += wr.eq(wr + 1)
                     with m.If(self.i.payload.last):
-                        m.d.sync += [commit.eq(wr + 1), port.kept.eq(port.kept + 1)]
+                        m.d.sync += [commit.eq(wr + 1), keep_event.eq(1)]
+
+        # The frame counters count a clock after the event.
+        with m.If(keep_event):
+            m.d.sync += port.kept.eq(port.kept + 1)
+        with m.If(drop_event):
+            m.d.sync += port.dropped.eq(port.dropped + 1)
 
         with m.If(port.release):
             m.d.sync += rd.eq(rd + port.release_sectors)

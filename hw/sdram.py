@@ -183,7 +183,19 @@ class SdramController(wiring.Component):
 
         def wait_then(clocks_, then):
             # `clocks_` clocks from this command to the next (the command's own included).
-            m.d.sync += [wait.eq(clocks_ - 1), after_wait.eq(then), state.eq(_State.WAIT)]
+            # The count and the next state are loaded in every clock of the state (they
+            # matter only once it goes to WAIT), so that their loads do not depend on the
+            # conditions of its command.
+            m.d.sync += [wait.eq(clocks_ - 1), after_wait.as_value().eq(then)]
+
+        def go_wait():
+            m.d.sync += state.eq(_State.WAIT)
+
+        # Auto refreshes are counted a clock after they are issued.
+        refreshed = Signal()
+        m.d.sync += refreshed.eq(0)
+        with m.If(refreshed):
+            m.d.sync += self.refreshes.eq(self.refreshes + 1)
 
         # DQM masks write data at once and read data two clocks later: low except for the
         # bytes a write leaves alone (high during initialisation, as the data sheets ask).
@@ -202,21 +214,22 @@ class SdramController(wiring.Component):
                 # Precharges all banks.
                 command(arch.Command.PRECHARGE, a_=1 << arch.A10)
                 wait_then(t_rp, _State.INIT_REF)
+                go_wait()
 
             with m.Case(_State.INIT_REF):
                 # Issues the initialisation's auto refreshes.
                 command(arch.Command.REFRESH)
                 m.d.sync += init_count.eq(init_count + 1)
-                with m.If(init_count == t.init_refreshes - 1):
-                    wait_then(t_rfc, _State.INIT_MODE)
-                with m.Else():
-                    wait_then(t_rfc, _State.INIT_REF)
+                wait_then(t_rfc, Mux(init_count == t.init_refreshes - 1,
+                                     _State.INIT_MODE, _State.INIT_REF))
+                go_wait()
 
             with m.Case(_State.INIT_MODE):
                 # Loads the mode register: burst length 1, CAS latency.
                 command(arch.Command.LOAD_MODE, ba_=0,
                         a_=arch.mode_register(cas_latency=self.cas_latency))
                 wait_then(t_mrd, _State.IDLE)
+                go_wait()
 
             with m.Case(_State.IDLE):
                 # Serves a request, or refreshes when due.
@@ -227,8 +240,10 @@ class SdramController(wiring.Component):
                         m.d.sync += state.eq(_State.REFRESH)
                 with m.Elif(self.i.valid):
                     bank_open = open_.bit_select(bank, 1)
-                    with m.If(bank_open & (open_row[bank] == row) &
-                              (~req.write | (since_read == turnaround))):
+                    # Every bank's row compared at once, then the request's bank picked.
+                    row_open = Array(open_[b] & (open_row[b] == row)
+                                     for b in range(g.banks))[bank]
+                    with m.If(row_open & (~req.write | (since_read == turnaround))):
                         # The row is open: the access goes out now.
                         m.d.comb += self.i.ready.eq(1)
                         m.d.sync += [ba.eq(bank), a.eq(column)]
@@ -239,7 +254,7 @@ class SdramController(wiring.Component):
                         with m.Else():
                             m.d.comb += next_cmd.eq(arch.Command.READ)
                             m.d.sync += [read_pipe[0].eq(1), since_read.eq(0)]
-                    with m.Elif(bank_open & (open_row[bank] == row)):
+                    with m.Elif(row_open):
                         pass                    # a write waits for the read data to pass
                     with m.Elif(bank_open):
                         m.d.sync += state.eq(_State.PRECHARGE)
@@ -249,32 +264,35 @@ class SdramController(wiring.Component):
             with m.Case(_State.PRECHARGE):
                 # Closes rows: all banks for a refresh, else the requested bank; waits for
                 # tRAS since the last ACTIVE and tWR since the last write.
+                wait_then(t_rp, Mux(refresh_due, _State.REFRESH, _State.ACTIVATE))
                 with m.If((since_act >= t_ras) & (since_wr >= t_wr)):
+                    go_wait()
+                    m.d.sync += since_pre.eq(0)
                     with m.If(refresh_due):
                         command(arch.Command.PRECHARGE, a_=1 << arch.A10)
-                        m.d.sync += [open_.eq(0), since_pre.eq(0)]
-                        wait_then(t_rp, _State.REFRESH)
+                        m.d.sync += open_.eq(0)
                     with m.Else():
                         command(arch.Command.PRECHARGE, ba_=bank, a_=0)
-                        m.d.sync += [open_.bit_select(bank, 1).eq(0), since_pre.eq(0)]
-                        wait_then(t_rp, _State.ACTIVATE)
+                        m.d.sync += open_.bit_select(bank, 1).eq(0)
 
             with m.Case(_State.REFRESH):
                 # Refreshes (all banks are closed).
                 command(arch.Command.REFRESH)
-                m.d.sync += [refresh_due.eq(0), self.refreshes.eq(self.refreshes + 1)]
+                m.d.sync += [refresh_due.eq(0), refreshed.eq(1)]
                 wait_then(t_rfc, _State.IDLE)
+                go_wait()
 
             with m.Case(_State.ACTIVATE):
                 # Opens the requested row, once tRC since the last ACTIVE and tRP since the
                 # last PRECHARGE have passed.
+                wait_then(t_rcd, _State.IDLE)
                 with m.If(refresh_due):
                     m.d.sync += state.eq(_State.IDLE)
                 with m.Elif((since_act >= t_rc) & (since_pre >= t_rp)):
                     command(arch.Command.ACTIVE, ba_=bank, a_=row)
                     m.d.sync += [open_.bit_select(bank, 1).eq(1), open_row[bank].eq(row),
                                  since_act.eq(0)]
-                    wait_then(t_rcd, _State.IDLE)
+                    go_wait()
 
             with m.Case(_State.WAIT):
                 # Counts down a command's timing (NOPs meanwhile).
