@@ -29,7 +29,7 @@ from .top import CPU_MODULE, BoardTop
 
 __all__ = ["PROJECT_NAME", "SdramIoTiming", "SDRAM_TIMING", "SdIoTiming", "SD_DEFAULT_SPEED",
            "LOGGER_BASE", "sdc_constraints", "qsys_script", "build_script",
-           "MEGAFUNCTION_STANDINS", "CPU_STANDIN",
+           "MEGAFUNCTION_STANDINS", "CPU_STANDIN", "project",
            "build_project", "project_files"]
 
 #: The Quartus revision and top-level module.
@@ -366,6 +366,11 @@ endmodule
 
 def project_files(board, **kwargs):
     """``{relative path: text}`` of every file of the project (nothing is written)."""
+    return project(board, **kwargs)[1]
+
+
+def project(board, **kwargs):
+    """The board top (elaborated) and ``{relative path: text}`` of the project's files."""
     if isinstance(board, str):
         if board not in BOARDS:
             raise ValueError(f"unknown board {board!r} (boards: {', '.join(BOARDS)})")
@@ -385,7 +390,7 @@ def project_files(board, **kwargs):
     files["build.sh"] = build_script(board)
     files["pins.md"] = f"# {board.title}\n\n{pin_table_markdown(board)}\n"
     files["yosys/standins.v"] = MEGAFUNCTION_STANDINS + CPU_STANDIN
-    return files
+    return top, files
 
 
 def build_project(board, directory, *, force=False, **kwargs):

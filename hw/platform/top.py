@@ -27,6 +27,7 @@ from amaranth import *
 from amaranth.lib import io
 from amaranth.lib.cdc import ResetSynchronizer
 
+from ..frontend import DEFAULT_CHANNELS
 from .avalon import AvalonLogger
 from .boards import BOARDS
 
@@ -106,6 +107,8 @@ class BoardTop(Elaboratable):
     Parameters
     ----------
     board : str or Board
+    channels : sequence of ChannelConfig
+        One per UART input of the board.
     sdram_phase_ns : float
         Phase of the SDRAM clock against the system clock (negative: it leads).
     **logger_kwargs :
@@ -117,16 +120,18 @@ class BoardTop(Elaboratable):
     bridge_address_width : int
         Byte address bits of the NIOS II system's exported master (the logger's window).
     """
-    def __init__(self, board, *, sdram_phase_ns=-3.0, **logger_kwargs):
+    def __init__(self, board, *, channels=DEFAULT_CHANNELS, sdram_phase_ns=-3.0,
+                 **logger_kwargs):
         if isinstance(board, str):
             board = BOARDS[board]
         self.board = board
+        if len(channels) != board.uarts:
+            raise ValueError(f"The logger has {len(channels)} channels, the board "
+                             f"{board.name} {board.uarts} UART inputs")
         self.f_sys = 50e6
         self.pll = pll_config(50e6, self.f_sys, sdram_phase_ns)
-        self.logger = AvalonLogger(chip=board.chip, clk_freq=self.f_sys, **logger_kwargs)
-        if len(self.logger.uart_rx) != board.uarts:
-            raise ValueError(f"The logger has {len(self.logger.uart_rx)} channels, the board "
-                             f"{board.name} {board.uarts} UART inputs")
+        self.logger = AvalonLogger(channels, chip=board.chip, clk_freq=self.f_sys,
+                                   **logger_kwargs)
         self.bridge_address_width = len(self.logger.avs.address) + 2
 
     def elaborate(self, platform):

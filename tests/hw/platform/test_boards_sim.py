@@ -9,8 +9,7 @@ import subprocess
 import pytest
 
 from maglog.hw.platform.boards import BOARDS
-from maglog.hw.platform.quartus import MEGAFUNCTION_STANDINS, PROJECT_NAME, project_files
-from maglog.hw.platform.top import BoardTop
+from maglog.hw.platform.quartus import MEGAFUNCTION_STANDINS, PROJECT_NAME, project
 from maglog.hw.top import LOGGER_ID
 from maglog.sw.regmap import RegisterMap
 
@@ -126,9 +125,7 @@ def test_board_top_registers_and_sdram_pins(name, tmp_path, external):
     iverilog = external.tool("iverilog", why="simulating the board top")
     vvp = external.tool("vvp", why="simulating the board top")
     board = BOARDS[name]
-    # A short SDRAM power-up keeps the run short; everything else as built for the board.
-    files = project_files(name)
-    top = BoardTop(board)
+    top, files = project(name)
     regs = RegisterMap(top.logger.csr_memory_map)
     (tmp_path / "top.v").write_text(files[f"{PROJECT_NAME}.v"])
     (tmp_path / "standins.v").write_text(MEGAFUNCTION_STANDINS)
