@@ -51,9 +51,9 @@ class SdramIoTiming:
 # Ref: Micron/Alliance MT48LC4M32B2 data sheet, Table "Electrical Characteristics and
 #      Recommended AC Operating Conditions", -6 speed grade: tAC(2) 7.5 ns, tOH 2 ns,
 #      tAS/tCMS/tDS 1.5 ns, tAH/tCMH/tDH 1 ns.
-# Ref: ISSI IS42S16160 data sheet (-7): tAC CL2 6.5 ns (taken as the larger of the values
-#      ISSI gives for its -7/-75 parts, to be safe), tOH 2.5 ns, tAS/tCS/tDS 1.5 ns,
-#      tAH/tCH/tDH 0.8 ns.
+# Ref: ISSI SDR SDRAM data sheets of the IS42S16160's family (IS42S16800A -7: tAC CL2 6 ns,
+#      tOH 2.5 ns, tAS/tCS/tDS 1.5 ns, tAH/tCH/tDH 0.8 ns; IS42S32160C -75: tAC CL2 6.5 ns,
+#      taken to be safe). The IS42S16160's own sheet was not at hand: check these.
 SDRAM_TIMING = {
     "MT48LC4M32B2": SdramIoTiming(t_ac=7.5, t_oh=2.0, t_is=1.5, t_ih=1.0),
     "IS42S16160":   SdramIoTiming(t_ac=6.5, t_oh=2.5, t_is=1.5, t_ih=0.8),
