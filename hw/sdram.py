@@ -38,6 +38,21 @@ def sdram_pins_signature(geometry):
     })
 
 
+def count_up(m, counter, event, *, split=None):
+    """Adds one to ``counter`` in the clock ``event`` is high, with a short carry: the high
+    half counts when the low half is all ones, which a register keeps track of (so the
+    low half's compare is not in the high half's path). ``counter`` is reset to zero only
+    by the domain's reset."""
+    width = len(counter)
+    split = width // 2 if split is None else split
+    low, high = counter[:split], counter[split:]
+    low_ones = Signal()                 # the low half is all ones
+    with m.If(event):
+        m.d.sync += [low.eq(low + 1), low_ones.eq(low == (1 << split) - 2)]
+        with m.If(low_ones):
+            m.d.sync += high.eq(high + 1)
+
+
 class _State(enum.Enum, shape=4):
     POWER_UP   = 0
     INIT_PRE   = 1
@@ -194,8 +209,7 @@ class SdramController(wiring.Component):
         # Auto refreshes are counted a clock after they are issued.
         refreshed = Signal()
         m.d.sync += refreshed.eq(0)
-        with m.If(refreshed):
-            m.d.sync += self.refreshes.eq(self.refreshes + 1)
+        count_up(m, self.refreshes, refreshed)
 
         # DQM masks write data at once and read data two clocks later: low except for the
         # bytes a write leaves alone (high during initialisation, as the data sheets ask).
