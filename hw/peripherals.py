@@ -15,7 +15,7 @@ from .arch import frames as arch
 from .soc import csr
 
 
-__all__ = ["RWStrobed", "Leds", "Button", "Rtc", "Watchdog", "Events", "GpsTime",
+__all__ = ["RWStrobed", "WordBridge", "Leds", "Button", "Rtc", "Watchdog", "Events", "GpsTime",
            "tap_signature"]
 
 #: The RTC and the watchdog count milliseconds.
@@ -82,29 +82,45 @@ class RWStrobed(csr.FieldAction):
         return m
 
 
-class _CsrComponent(wiring.Component):
-    """A component whose registers sit behind a lean CSR multiplexer of its own.
+class WordBridge(wiring.Component):
+    """A CSR bridge for registers of one bus word each: a drop-in for ``csr.Bridge``.
 
-    Each register is one bus word, so no shadow registers are needed (amaranth-soc's
-    ``csr.Multiplexer`` keeps a read and a write shadow as wide as the widest register, with
-    their muxes, to make wider registers atomic). Reads keep the bus timing of the
-    multiplexer: the register's ``r_stb`` is high in the strobe's cycle and the word is on
-    ``r_data`` in the next cycle only (zero otherwise, as the CSR decoder ORs its windows).
-    A write reaches the register's fields in the strobe's cycle (they take it at that edge).
+    amaranth-soc's ``csr.Multiplexer`` (inside ``csr.Bridge``) keeps a read and a write
+    shadow as wide as the widest register, with their muxes, to make registers wider than
+    the bus atomic. With every register one word wide there is nothing to make atomic: the
+    register's ``r_stb`` is high in the strobe's cycle and its word is on ``r_data`` in the
+    next cycle only (zero otherwise, as a CSR decoder ORs its windows), as from the
+    multiplexer; a write reaches the register's fields in the strobe's cycle (they take it
+    at that edge, one cycle before the multiplexer's shadow would pass it on).
+
+    Parameters
+    ----------
+    memory_map : MemoryMap
+        The registers (``csr.Builder(...).as_memory_map()``), each one word of the bus.
+
+    Members
+    -------
+    bus : ``In(csr.Signature(addr_width=memory_map.addr_width, data_width=...))``
     """
-    def __init__(self, regs, members):
-        self._memory_map = regs.as_memory_map()
-        super().__init__({"bus": _bus_members(regs), **members})
-        self.bus.memory_map = self._memory_map
+    def __init__(self, memory_map):
+        for reg, name, (start, end) in memory_map.resources():
+            if end - start != 1:
+                raise ValueError(f"Register {'_'.join(str(p) for p in name)} takes "
+                                 f"{end - start} bus words; WordBridge takes one-word "
+                                 f"registers only")
+        self._memory_map = memory_map
+        super().__init__({"bus": In(csr.Signature(addr_width=memory_map.addr_width,
+                                                  data_width=memory_map.data_width))})
+        self.bus.memory_map = memory_map
 
-    def _elaborate_bridge(self):
+    def elaborate(self, platform):
         m = Module()
         bus = self.bus
         r_word = 0
-        for reg, name, (start, end) in self._memory_map.resources():
-            assert end - start == 1, "every register is one bus word"
-            m.submodules["_".join(str(part) for part in name)] = reg
-            select = Signal(name=f"select_{'_'.join(str(part) for part in name)}")
+        for reg, name, (start, _) in self._memory_map.resources():
+            label = "_".join(str(part) for part in name)
+            m.submodules[label] = reg
+            select = Signal(name=f"select_{label}")
             m.d.comb += select.eq(bus.addr == start)
             if reg.element.access.readable():
                 m.d.comb += reg.element.r_stb.eq(bus.r_stb & select)
@@ -118,6 +134,20 @@ class _CsrComponent(wiring.Component):
         r_data = Signal.like(bus.r_data, reset_less=True)
         m.d.sync += r_data.eq(Mux(bus.r_stb, r_word, 0))
         m.d.comb += bus.r_data.eq(r_data)
+        return m
+
+
+class _CsrComponent(wiring.Component):
+    """A component whose registers (one bus word each) sit behind its own WordBridge."""
+    def __init__(self, regs, members):
+        self._bridge = WordBridge(regs.as_memory_map())
+        super().__init__({"bus": _bus_members(regs), **members})
+        self.bus.memory_map = self._bridge.bus.memory_map
+
+    def _elaborate_bridge(self):
+        m = Module()
+        m.submodules.bridge = self._bridge
+        wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
         return m
 
 

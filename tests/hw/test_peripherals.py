@@ -837,3 +837,39 @@ def test_leds_and_button_with_a_shared_tick_count_the_ticks():
                                                         drive_tick(button, period)])
     assert level == 1 and len(presses) == 1
     assert 2 + 2 * period < presses[0] <= 2 + 3 * period + 1
+
+
+# -- the word bridge ---------------------------------------------------------------------------
+
+def test_word_bridge_refuses_registers_wider_than_a_word():
+    from maglog.hw.peripherals import WordBridge
+    from maglog.hw.soc import csr
+
+    class Wide(csr.Register, access="r"):
+        value: csr.Field(csr.action.R, 40)
+
+    regs = csr.Builder(addr_width=2, data_width=32, granularity=8)
+    regs.add("wide", Wide())
+    with pytest.raises(ValueError, match=r"^Register wide takes 2 bus words; WordBridge takes "
+                                         r"one-word registers only$"):
+        WordBridge(regs.as_memory_map())
+
+
+def test_word_bridge_drives_read_data_in_the_cycle_after_the_strobe_only():
+    """The CSR decoder ORs its windows' read data: a window must read zero when idle."""
+    dut = Watchdog(CLK)
+
+    async def script(ctx, bus, regs):
+        control = regs["control"].address
+        seen = []
+        ctx.set(dut.bus.addr, control)
+        for r_stb in (0, 1, 0, 0):
+            ctx.set(dut.bus.r_stb, r_stb)
+            await ctx.tick()
+            seen.append(ctx.get(dut.bus.r_data))
+        ctx.set(dut.bus.r_stb, 0)
+        return seen
+
+    timeout_bits = RegisterMap(dut.bus.memory_map)["control"].encode(
+        timeout_ms=1000)
+    assert simulate(dut, script) == [0, timeout_bits, 0, 0]
