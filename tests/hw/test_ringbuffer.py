@@ -206,3 +206,44 @@ def test_ring_port_width_is_checked():
     with pytest.raises(ValueError, match="Level width must be a positive integer, not 0"):
         RingPort(0)
     assert RingPort(15) == RingPort(15) != RingPort(16)
+
+
+def test_a_reset_zeroes_the_figures_high_water_included():
+    """The high-water mark has no reset of its own: it takes the level (zero) the clock
+    after a reset, as a watchdog reset of the logger does."""
+    class Top(Elaboratable):
+        def __init__(self):
+            self.cd = ClockDomain("sync")
+            self.ring = RingBuffer(MT48LC4M32B2.geometry, capacity=1 << 14)
+
+        def elaborate(self, platform):
+            m = Module()
+            m.domains.sync = self.cd
+            m.submodules.ring = self.ring
+            return m
+
+    top = Top()
+    ring = top.ring
+    frame = frames_of(random.Random(5), 1)[0]
+    result = {}
+
+    async def main(ctx):
+        ctx.set(ring.mem.ready, 1)                # writes are taken at once
+        for k, byte in enumerate(frame):
+            ctx.set(ring.i.payload, {"data": byte, "last": k == len(frame) - 1})
+            ctx.set(ring.i.valid, 1)
+            await ctx.tick().until(ring.i.ready)
+        ctx.set(ring.i.valid, 0)
+        await ctx.tick().repeat(2)
+        result["before"] = [ctx.get(v) for v in (ring.dma.level, ring.dma.high_water,
+                                                   ring.dma.kept)]
+        ctx.set(top.cd.rst, 1)
+        await ctx.tick()
+        ctx.set(top.cd.rst, 0)
+        await ctx.tick().repeat(2)
+        result["after"] = [ctx.get(v) for v in (ring.dma.level, ring.dma.high_water,
+                                                  ring.dma.kept, ring.dma.dropped)]
+
+    run_simulation(top, [main], name="ring_reset")
+    assert result["before"] == [len(frame), len(frame), 1]
+    assert result["after"] == [0, 0, 0, 0]
