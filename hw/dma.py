@@ -274,8 +274,7 @@ class Dma(wiring.Component):
         with m.If(starting):
             m.d.sync += [
                 busy.eq(1), source.eq(control.source.w_data),
-                sectors.eq(Mux(control.source.w_data == DmaSource.BUFFER, 1,
-                               control.sectors.w_data)),
+                sectors.eq(control.sectors.w_data),
                 sent.eq(0), count.eq(0), asked.eq(0), sector.eq(control.first.w_data),
             ]
         discarding = Signal()
@@ -319,5 +318,6 @@ class Dma(wiring.Component):
             m.d.sync += count.eq(count_next)
             with m.If(last_byte):
                 m.d.sync += [asked.eq(0), sent.eq(sent_next), sector.eq(sector + 1)]
-                with m.If(sent_next == sectors):
+                # The buffer is sent once, whatever `sectors` says.
+                with m.If((source == DmaSource.BUFFER) | (sent_next == sectors)):
                     m.d.sync += busy.eq(0)
