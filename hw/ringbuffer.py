@@ -77,7 +77,8 @@ class RingBuffer(wiring.Component):
     on by whole sectors once the card has them.
 
     Each byte is one SDRAM word write with a byte mask (the serial data rate is far below
-    what that costs); sector reads are word reads, one a clock, into a sector FIFO.
+    what that costs); sector reads are word reads, one a clock, into a sector buffer (one
+    M9K), whose bytes leave as their words arrive.
 
     Parameters
     ----------
