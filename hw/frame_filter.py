@@ -72,7 +72,8 @@ class FrameFilter(wiring.Component):
     fifo_depth : int
         Bytes of frame FIFO (a power of two).
     counter_width : int
-        Width of each frame counter (they wrap).
+        Width of each frame counter (they wrap); 0 for no counters, only their ``events``
+        (for a counter bank elsewhere).
 
     Members
     -------
@@ -82,8 +83,11 @@ class FrameFilter(wiring.Component):
         Kept frames, whole, ``last`` on the LF.
     flush : ``Out(1)``
         One-cycle strobe for each kept GGA whose fix quality is 1-9 (NMEA channels only).
+    events : ``Out(len(COUNTER_NAMES))``
+        One-cycle strobe per counter, in :data:`~maglog.hw.arch.frames.COUNTER_NAMES` order:
+        a frame kept, or dropped for that cause. At most one strobe per received character.
     counters : ``Out(counters_signature(counter_width))``
-        Kept frames and dropped frames by cause.
+        Kept frames and dropped frames by cause (only when ``counter_width`` is not 0).
     """
     def __init__(self, kind, *, max_frame=arch.DEFAULT_MAX_FRAME, fifo_depth=1024,
                  counter_width=32):
@@ -101,18 +105,21 @@ class FrameFilter(wiring.Component):
         if fifo_depth > arch.MAX_FIFO_DEPTH:
             raise ValueError(f"FIFO depth must be at most {arch.MAX_FIFO_DEPTH} bytes (the "
                              f"block RAM of the target), not {fifo_depth!r}")
-        if not isinstance(counter_width, int) or not 1 <= counter_width <= 64:
-            raise ValueError(f"Counter width must be an integer from 1 to 64, "
+        if not isinstance(counter_width, int) or not 0 <= counter_width <= 64:
+            raise ValueError(f"Counter width must be an integer from 0 to 64, "
                              f"not {counter_width!r}")
         self._kind = kind
         self._max_frame = max_frame
         self._fifo = FrameFifo(depth=fifo_depth)
-        super().__init__({
-            "i":        In(stream.Signature(RxByte())),
-            "o":        Out(stream.Signature(FrameByte())),
-            "flush":    Out(1),
-            "counters": Out(counters_signature(counter_width)),
-        })
+        members = {
+            "i":      In(stream.Signature(RxByte())),
+            "o":      Out(stream.Signature(FrameByte())),
+            "flush":  Out(1),
+            "events": Out(len(arch.COUNTER_NAMES)),
+        }
+        if counter_width:
+            members["counters"] = Out(counters_signature(counter_width))
+        super().__init__(members)
 
     @property
     def kind(self):
@@ -299,7 +306,7 @@ class FrameFilter(wiring.Component):
                             with m.Else():
                                 m.d.sync += quality.eq(_Quality.OTHER)
 
-        # Counters and the flush event.
+        # Counter events, the counters, and the flush event.
         counts = {name: Signal(name=f"count_{name}") for name in arch.COUNTER_NAMES}
         m.d.comb += counts["kept"].eq(finish & ~overflow)
         for c in arch.DropCause:
@@ -307,10 +314,12 @@ class FrameFilter(wiring.Component):
                 m.d.comb += counts[c.counter].eq(overflow | (drop & (cause == c)))
             else:
                 m.d.comb += counts[c.counter].eq(drop & (cause == c))
-        for name, strobe in counts.items():
-            counter = getattr(self.counters, name)
-            with m.If(strobe):
-                m.d.sync += counter.eq(counter + 1)
+        m.d.comb += self.events.eq(Cat(counts.values()))
+        if "counters" in self.signature.members:
+            for name, strobe in counts.items():
+                counter = getattr(self.counters, name)
+                with m.If(strobe):
+                    m.d.sync += counter.eq(counter + 1)
 
         if kind == ChannelKind.NMEA:
             m.d.sync += self.flush.eq(finish & ~overflow & (word == _Word.GGA) &

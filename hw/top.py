@@ -273,7 +273,7 @@ class Logger(wiring.Component):
         # Registers.
         for k in range(len(fe.channels)):
             body.d.comb += fe.divisor[k].eq(self.frontend_regs.divisor[k])
-            wiring.connect(body, fe.counters[k], self.frontend_regs.counters[k])
+        wiring.connect(body, self.frontend_regs.counters, fe.counters)
         body.d.comb += [
             gate.record.eq(self.logger_regs.record),
             self.logger_regs.in_frame.eq(gate.in_frame),

@@ -146,9 +146,21 @@ async def _count_flushes(dut, counter):
         counter[0] += 1
 
 
-def _read_counters(dut, channels, names):
-    return [{name: int(getattr(dut, f"counters__{k}__{name}").value) for name in names}
-            for k in range(channels)]
+async def _read_counters(dut, names, addresses):
+    """The counters through the front end's read port: per channel, ``{name: value}``."""
+    counters = []
+    for channel in addresses:
+        values = {}
+        for name, address in zip(names, channel):
+            dut.counters__addr.value = address
+            dut.counters__r_stb.value = 1
+            await RisingEdge(dut.clk)
+            dut.counters__r_stb.value = 0
+            await ReadOnly()
+            values[name] = int(dut.counters__r_data.value)
+            await RisingEdge(dut.clk)    # a cycle between two reads, for the scanner
+        counters.append(values)
+    return counters
 
 
 @cocotb.test()
@@ -166,6 +178,7 @@ async def run_stimulus(dut):
     for k, channel in enumerate(channels):
         getattr(dut, f"divisor__{k}").value = channel["divisor"]
     dut.o__ready.value = 1
+    dut.counters__r_stb.value = 0
     dut.rst.value = 1
     for _ in range(4):
         await RisingEdge(dut.clk)
@@ -186,12 +199,16 @@ async def run_stimulus(dut):
         await driver
     # Let the last characters through the receivers and the frames through the FIFOs.
     await Timer(stimulus.get("drain_ns", 100_000), unit="ns")
+    cycles = round(get_sim_time(unit="ns") / CLOCK_NS)
+    await RisingEdge(dut.clk)
+    counters = await _read_counters(dut, stimulus["counter_names"],
+                                    stimulus["counter_addresses"])
 
     result = {
         "frames": [[channel, frame.hex()] for channel, frame in monitor.frames],
-        "counters": _read_counters(dut, n, stimulus["counter_names"]),
+        "counters": counters,
         "flushes": flushes[0],
-        "cycles": round(get_sim_time(unit="ns") / CLOCK_NS),
+        "cycles": cycles,
         "mismatches": monitor.mismatches + monitor.missing(),
     }
     with open(os.environ["MAGLOG_RESULT"], "w") as f:

@@ -13,13 +13,14 @@ from pathlib import Path
 
 from ...hw.arch import frames as arch_frames
 from ...hw.frame_filter import ChannelKind, FrameFilter
-from ...hw.frontend import ChannelConfig, DEFAULT_CHANNELS, FrontEnd, TOPLEVEL_NAME, generate_verilog
+from ...hw.frontend import (ChannelConfig, DEFAULT_CHANNELS, FrontEnd, TOPLEVEL_NAME,
+                             generate_verilog, register_address)
 from ..backends import amaranth as amaranth_backend
 from ..backends.cocotb import CocotbBuild
 from ..stimulus.uart_line import ChannelStimulus, Segments
 
 
-__all__ = ["BACKENDS", "FrontEndResult", "FrontEndBench", "run_frame_filter"]
+__all__ = ["BACKENDS", "FrontEndResult", "FrontEndBench", "read_counter", "run_frame_filter"]
 
 BACKENDS = ("amaranth", "icarus", "verilator")
 #: cocotb's clock period, the Amaranth simulator's (one constant for both).
@@ -95,6 +96,8 @@ class FrontEndBench:
         raw = self._cocotb.run("maglog.sim.backends.cocotb_frontend", {
             "channels": channels,
             "counter_names": list(arch_frames.COUNTER_NAMES),
+            "counter_addresses": [[register_address(k, name) for name in arch_frames.COUNTER_NAMES]
+                                  for k in range(len(self.channels))],
             "drain_ns": self._drain(stimuli) * CLOCK_NS,
             "backpressure": self.backpressure,
             "seed": self.seed,
@@ -122,7 +125,7 @@ class FrontEndBench:
         async def timekeeper(ctx):
             await ctx.delay(cycles * amaranth_backend.CLOCK_PERIOD)
             for k in range(len(self.channels)):
-                counters.append({name: ctx.get(getattr(dut.counters[k], name))
+                counters.append({name: await read_counter(ctx, dut, register_address(k, name))
                                  for name in arch_frames.COUNTER_NAMES})
 
         class Tagged:
@@ -168,6 +171,18 @@ class FrontEndBench:
             result = self._run_cocotb(stimuli, waves)
         result.seconds = time.perf_counter() - start
         return result
+
+
+async def read_counter(ctx, front_end, address):
+    """One counter of a running front end, through its read port (two cycles)."""
+    port = front_end.counters
+    ctx.set(port.addr, address)
+    ctx.set(port.r_stb, 1)
+    await ctx.tick()
+    ctx.set(port.r_stb, 0)
+    value = ctx.get(port.r_data)
+    await ctx.tick()                 # a cycle between two reads, for the scanner
+    return value
 
 
 def run_frame_filter(kind, events, *, max_frame=arch_frames.DEFAULT_MAX_FRAME, fifo_depth=1024,

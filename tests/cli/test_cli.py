@@ -34,7 +34,7 @@ def test_hdl_verilog_frontend_writes_the_front_end_alone(tmp_path, capsys):
     assert "top module maglog_frontend" in capsys.readouterr().err
     text = out.read_text()
     assert "module maglog_frontend" in text and "module maglog_logger" not in text
-    for port in ("clk", "rst", "uart_rx", "o__valid", "counters__1__kept"):
+    for port in ("clk", "rst", "uart_rx", "o__valid", "counters__r_data"):
         assert port in text
 
 

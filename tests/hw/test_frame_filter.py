@@ -6,6 +6,7 @@ import pytest
 
 from maglog.hw.arch.frames import COUNTER_NAMES
 from maglog.hw.frame_filter import ChannelKind, FrameFilter
+from maglog.sim.backends.amaranth import feed_stream, run_simulation
 from maglog.sim.stimulus import sentences
 from maglog.sim.runners.frontend import run_frame_filter as run_filter
 from maglog.sim.reference import Kind, reference_filter
@@ -243,3 +244,35 @@ def test_parameters_the_design_cannot_build(kwargs, message):
     with pytest.raises(ValueError) as error:
         FrameFilter(ChannelKind.PMAG, **kwargs)
     assert str(error.value) == message
+
+
+@pytest.mark.parametrize("kind", [NMEA, PMAG, CESIUM])
+def test_events_strobe_once_per_count_and_width_0_leaves_only_them(kind):
+    """``events`` (what a counter bank counts) strobe exactly when the counters count; with
+    ``counter_width=0`` there are no counter registers, the same strobes."""
+    streams = demo_streams(seconds=1.0, seed=4)
+    data = {NMEA: streams["gps"], PMAG: streams["mag"], CESIUM: streams["cesium"]}[kind]
+    rng = random.Random(8)
+    events = [(b, rng.random() < 0.002) for b in data[:3000]] + [(ord("$"), False)] * 3
+    ref = reference_filter(Kind(kind.value), events)
+    assert sum(ref.counters.values()) > len(ref.frames) > 0
+    for width in (32, 0):
+        dut = FrameFilter(kind, counter_width=width)
+        assert ("counters" in dut.signature.members) == bool(width)
+        strobes = dict.fromkeys(COUNTER_NAMES, 0)
+
+        async def source(ctx):
+            await feed_stream(ctx, dut.i, [{"data": b, "framing_error": int(e)}
+                                           for b, e in events])
+            await ctx.tick().repeat(4)
+            if width:
+                assert {n: ctx.get(getattr(dut.counters, n)) for n in COUNTER_NAMES} == strobes
+
+        async def count(ctx):
+            ctx.set(dut.o.ready, 1)
+            async for _, _, value in ctx.tick().sample(dut.events):
+                for i, name in enumerate(COUNTER_NAMES):
+                    strobes[name] += value >> i & 1
+
+        run_simulation(dut, [source], background=[count], name=f"filter_events_{width}")
+        assert strobes == ref.counters, width

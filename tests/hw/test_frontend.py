@@ -4,11 +4,18 @@ import random
 
 import numpy as np
 import pytest
+from amaranth import Module
+from amaranth.lib import wiring
+from amaranth.lib.wiring import In
 
+from maglog.hw.arch.frames import COUNTER_NAMES
 from maglog.hw.frame_filter import ChannelKind
-from maglog.hw.frontend import ChannelConfig, DEFAULT_CHANNELS, FrontEnd, divisor_for
+from maglog.hw.frontend import (ChannelConfig, DEFAULT_CHANNELS, FrontEnd, FrontEndRegisters,
+                                divisor_for, register_address)
+from maglog.hw.soc import csr
+from maglog.sim.backends.amaranth import drive_line, run_simulation
 from maglog.sim.stimulus import sentences
-from maglog.sim.runners.frontend import FrontEndBench
+from maglog.sim.runners.frontend import FrontEndBench, read_counter
 from maglog.sim.stimulus.uart_line import ChannelStimulus, encode, segments_from_levels
 from maglog.sim.reference import Kind, reference_filter
 from maglog.sim.stimulus.streams import demo_streams
@@ -77,3 +84,125 @@ def test_divisor_checks():
         ChannelConfig(ChannelKind.NMEA, 0)
     with pytest.raises(ValueError, match="The front end needs at least one channel"):
         FrontEnd([])
+
+
+def test_counters_keep_up_at_the_fastest_divisor_with_the_bus_reading_every_other_cycle():
+    """Divisor 1 and characters back to back, 2 % fast, where every character is an event
+    (a `$` inside a frame drops it as a bad byte; damaged stop bits, UART errors), on all
+    channels at once, while the bus reads a counter every other cycle (the most the bank
+    allows): the counters still count every event."""
+    data = [b"$" * 30] * 3
+    traces = [encode(d, bit_cycles=16, baud_error=-0.02,
+                     framing_errors=[5, 6, 7] if k == 2 else []) for k, d in enumerate(data)]
+    dut = FrontEnd()
+    done = [False]
+    reads = [0]
+
+    def line(k):
+        async def drive(ctx):
+            ctx.set(dut.divisor[k], 1)
+            await drive_line(ctx, dut.uart_rx[k], traces[k].segments)
+        return drive
+
+    async def reader(ctx):
+        rng = random.Random(2)
+        while not done[0]:
+            k, name = rng.randrange(3), rng.choice(COUNTER_NAMES)
+            ctx.set(dut.counters.addr, register_address(k, name))
+            ctx.set(dut.counters.r_stb, 1)
+            await ctx.tick()
+            ctx.set(dut.counters.r_stb, 0)
+            await ctx.tick().repeat(1 + (rng.random() < 0.3))   # mostly every other cycle
+            reads[0] += 1
+
+    async def main(ctx):
+        cycles = max(t.levels().size for t in traces) + 2000
+        await ctx.tick().repeat(cycles)
+        done[0] = True
+        await ctx.tick().repeat(4)
+        counts = [{n: await read_counter(ctx, dut, register_address(k, n)) for n in COUNTER_NAMES}
+                  for k in range(3)]
+        for k, (config, trace) in enumerate(zip(DEFAULT_CHANNELS, traces)):
+            ref = reference_filter(Kind(config.kind.value), trace.expected)
+            assert counts[k] == ref.counters, k
+        assert counts[0]["bad_byte"] == counts[1]["bad_byte"] == 29
+        assert counts[2]["uart_error"] == 1 and counts[2]["bad_byte"] > 20
+
+    async def drain(ctx):
+        ctx.set(dut.o.ready, 1)
+
+    run_simulation(dut, [main], background=[line(k) for k in range(3)] + [reader, drain],
+                   name="frontend_fastest_counters")
+    assert reads[0] > 1500
+
+
+def test_registers_answer_on_the_csr_bus_with_its_timing():
+    """FrontEndRegisters with a front end, as the top wires them: the memory map names every
+    register at its word address (8 per channel); divisors write and read back; counter
+    reads come from the bank; read data is there the cycle after ``r_stb`` and zero
+    otherwise."""
+    class Registered(wiring.Component):
+        def __init__(self):
+            self.fe = FrontEnd()
+            self.regs = FrontEndRegisters(3)
+            super().__init__({"bus": In(csr.Signature(addr_width=5, data_width=32))})
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.fe, m.submodules.regs = self.fe, self.regs
+            wiring.connect(m, wiring.flipped(self.bus), self.regs.bus)
+            wiring.connect(m, self.regs.counters, self.fe.counters)
+            for k in range(3):
+                m.d.comb += self.fe.divisor[k].eq(self.regs.divisor[k])
+            return m
+
+    dut = Registered()
+    names = [("_".join(map(str, name)), start, end)
+             for _, name, (start, end) in dut.regs.bus.memory_map.resources()]
+    expected = [(f"ch{k}_{n}", 8 * k + i) for k in range(3)
+                for i, n in enumerate(("divisor",) + COUNTER_NAMES)]
+    assert names == [(name, address, address + 1) for name, address in expected]
+    assert [register_address(k, n) for k in range(3) for n in ("divisor",) + COUNTER_NAMES] == \
+        [address for _, address in expected]
+    bus = dut.bus
+    trace = encode(b"$" * 6, bit_cycles=16)
+
+    async def read(ctx, address):
+        ctx.set(bus.addr, address)
+        ctx.set(bus.r_stb, 1)
+        await ctx.tick()
+        ctx.set(bus.r_stb, 0)
+        value = ctx.get(bus.r_data)
+        await ctx.tick()
+        assert ctx.get(bus.r_data) == 0
+        return value
+
+    async def main(ctx):
+        for k, value in ((0, 1), (1, 0x1234), (2, 0)):
+            ctx.set(bus.addr, register_address(k, "divisor"))
+            ctx.set(bus.w_data, 0xABCD0000 | value)
+            ctx.set(bus.w_stb, 1)
+            await ctx.tick()
+            ctx.set(bus.w_stb, 0)
+        assert [ctx.get(dut.fe.divisor[k]) for k in range(3)] == [1, 0x1234, 0]
+        assert ctx.get(bus.r_data) == 0
+        assert [await read(ctx, register_address(k, "divisor")) for k in range(3)] == [1, 0x1234, 0]
+        await drive_line(ctx, dut.fe.uart_rx[0], trace.segments)
+        await ctx.tick().repeat(200)
+        counts = {n: await read(ctx, register_address(0, n)) for n in COUNTER_NAMES}
+        assert counts == dict.fromkeys(COUNTER_NAMES, 0) | {"bad_byte": 5}
+        for _ in range(64):                    # no strobe, no data (the bank is scanning)
+            assert ctx.get(bus.r_data) == 0
+            await ctx.tick()
+        assert [await read(ctx, register_address(1, n)) for n in COUNTER_NAMES] == [0] * 7
+        assert await read(ctx, 31) == 0                       # beyond the registers
+
+    run_simulation(dut, [main], name="frontend_registers")
+
+
+def test_the_counter_bank_limits_the_channel_count():
+    """Eight channels sweep 64 words, in 129 cycles at most: inside the 144 between two
+    characters at divisor 1. Nine would need 128 words and could miss events."""
+    assert FrontEnd([ChannelConfig(ChannelKind.PMAG, 115200)] * 8).counter_bank.depth == 64
+    with pytest.raises(ValueError, match="could miss events of characters 144 cycles apart"):
+        FrontEnd([ChannelConfig(ChannelKind.PMAG, 115200)] * 9)
