@@ -5,7 +5,7 @@ memory map; the logger's top puts them behind one CSR decoder, one window each.
 """
 
 from amaranth import *
-from amaranth.lib import enum, wiring
+from amaranth.lib import wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
@@ -514,9 +514,9 @@ def tap_signature(n_channels):
 #: letter, a digit, or the end of the time (`.` or `,`). After the year's comma (``DONE``)
 #: any bytes may follow until the frame's last.
 _LETTER, _DIGIT, _TIME_END = "letter", "digit", "time end"
-_ZDA_TEMPLATE = ([ord("$"), _LETTER, _LETTER] + list(ZDA_ADDRESS) + [_DIGIT] * ZDA_TIME_DIGITS
-                 + [_TIME_END]
-                 + [c for width in ZDA_DATE_DIGITS for c in [_DIGIT] * width + [ord(",")]])
+_ZDA_TEMPLATE = ([arch.DOLLAR, _LETTER, _LETTER] + list(ZDA_ADDRESS)
+                 + [_DIGIT] * ZDA_TIME_DIGITS + [_TIME_END]
+                 + [c for width in ZDA_DATE_DIGITS for c in [_DIGIT] * width + [arch.COMMA]])
 _ZDA_DONE = len(_ZDA_TEMPLATE)
 _ZDA_TIME_END = _ZDA_TEMPLATE.index(_TIME_END)
 
@@ -621,7 +621,7 @@ class GpsTime(_CsrComponent):
         digit = byte[:4]
         is_digit  = (byte[4:] == ord("0") >> 4) & (digit <= 9)
         is_letter = (byte >= ord("A")) & (byte <= ord("Z"))
-        is_comma  = byte == ord(",")
+        is_comma  = byte == arch.COMMA
         # acc * 10 + digit, as (acc * 5 + digit // 2) * 2 + digit % 2: shifts and adds.
         next_acc = Signal(14)
         m.d.comb += next_acc.eq(Cat(digit[0], (acc << 2) + acc + digit[1:]))
@@ -652,7 +652,8 @@ class GpsTime(_CsrComponent):
                                      is_end.eq(k in _ZDA_FIELD_ENDS.values())]
                     elif what == _TIME_END:
                         m.d.comb += [
-                            good.eq(is_comma | ((byte == ord(".")) & ~frac) | (frac & is_digit)),
+                            good.eq(is_comma | ((byte == arch.PERIOD) & ~frac) |
+                                    (frac & is_digit)),
                             advance.eq(is_comma),
                         ]
                     else:
@@ -674,7 +675,7 @@ class GpsTime(_CsrComponent):
                     m.d.sync += skip.eq(1)
                 with m.Elif(advance):
                     m.d.sync += pos.eq(pos + 1)
-                with m.If(byte == ord(".")):
+                with m.If(byte == arch.PERIOD):
                     m.d.sync += frac.eq(1)
                 is_digit_pos = Cat(pos == k for k, what in enumerate(_ZDA_TEMPLATE)
                                    if what == _DIGIT).any()
