@@ -88,22 +88,23 @@ class SdioHost(wiring.Component):
         data:  csr.Field(csr.action.W, DataPhase)
 
     class Blocks(csr.Register, access="w"):
-        """Blocks to write in the next write data phase (1 after reset)."""
+        """Blocks to write in the next write data phase (1 at power-up; kept through a
+        reset, as are the argument and the timeouts)."""
         count: csr.Field(csr.action.W, 16)
 
     class Timeouts(csr.Register, access="w"):
-        """Response timeout, in SD clocks (N_CR; 64 after reset)."""
+        """Response timeout, in SD clocks (N_CR; 64 at power-up)."""
         response: csr.Field(csr.action.W, 16)
 
     class BusyTimeout(csr.Register, access="w"):
         """Busy timeout after a block or an R1b, in ticks of 256 SD clocks: it ends N to
-        N + 1 ticks after the block's token or the R1b response (250 ms at 25 MHz after
-        reset)."""
+        N + 1 ticks after the block's token or the R1b response (250 ms at 25 MHz at
+        power-up)."""
         ticks: csr.Field(csr.action.W, TIMEOUT_TICK_BITS)
 
     class ReadTimeout(csr.Register, access="w"):
         """Read access timeout, in ticks of 256 SD clocks: it ends N to N + 1 ticks after
-        the read command is written (100 ms at 25 MHz after reset)."""
+        the read command is written (100 ms at 25 MHz at power-up)."""
         ticks: csr.Field(csr.action.W, TIMEOUT_TICK_BITS)
 
     class Status(csr.Register, access="r"):
@@ -144,12 +145,20 @@ class SdioHost(wiring.Component):
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.bridge = self._bridge
+        # The bridge's registers (its read and write shadows and strobe delays) hold nothing
+        # worth a reset (resetting its 64 shadow bits costs a LUT each): it runs in a
+        # reset-less copy of `sync`. A write it still passes on in the cycle after a reset
+        # (`settled` low) is dropped below, as a reset bridge would drop it.
+        m.domains.sdio_csr = ClockDomain("sdio_csr", reset_less=True, local=True)
+        m.d.comb += ClockSignal("sdio_csr").eq(ClockSignal("sync"))
+        m.submodules.bridge = DomainRenamer("sdio_csr")(self._bridge)
         m.submodules.clock  = clock  = SdClock(divisor_bits=DIVISOR_BITS)
         m.submodules.cmd    = cmd    = CmdEngine()
         m.submodules.writer = writer = DatWriter()
         m.submodules.reader = reader = DatReader()
         wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
+        settled = Signal()           # low in the first cycle after a reset
+        m.d.sync += settled.eq(1)
 
         for engine in (cmd, writer, reader):
             m.d.comb += [engine.rise.eq(clock.rise), engine.fall.eq(clock.fall)]
@@ -169,21 +178,24 @@ class SdioHost(wiring.Component):
         wiring.connect(m, wiring.flipped(self.i), writer.i)
         wiring.connect(m, reader.o, wiring.flipped(self.o))
 
-        # Settings: write-only, kept here (the argument is pure data, without a reset).
+        # Settings: write-only, kept here. Only the clock's are reset: the others keep their
+        # values through a reset (their initial values are the defaults); the firmware
+        # writes the argument and the block count before each command that uses them and
+        # never changes the timeouts, and nothing reads them back.
         divisor      = Signal(DIVISOR_BITS)
         run          = Signal()
         argument     = Signal(arch.CMD_ARGUMENT_BITS, reset_less=True)
-        blocks       = Signal(16, init=1)
-        timeout      = Signal(16, init=arch.N_CR_MAX)
-        busy_timeout = Signal(TIMEOUT_TICK_BITS, init=BUSY_TIMEOUT_TICKS)
-        read_timeout = Signal(TIMEOUT_TICK_BITS, init=READ_TIMEOUT_TICKS)
+        blocks       = Signal(16, init=1, reset_less=True)
+        timeout      = Signal(16, init=arch.N_CR_MAX, reset_less=True)
+        busy_timeout = Signal(TIMEOUT_TICK_BITS, init=BUSY_TIMEOUT_TICKS, reset_less=True)
+        read_timeout = Signal(TIMEOUT_TICK_BITS, init=READ_TIMEOUT_TICKS, reset_less=True)
         for field, target in ((self._clock.f.divisor, divisor), (self._clock.f.run, run),
                               (self._argument.f.value, argument),
                               (self._blocks.f.count, blocks),
                               (self._timeouts.f.response, timeout),
                               (self._busy_timeout.f.ticks, busy_timeout),
                               (self._read_timeout.f.ticks, read_timeout)):
-            with m.If(field.w_stb):
+            with m.If(field.w_stb & settled):
                 m.d.sync += target.eq(field.w_data)
         m.d.comb += [
             clock.divisor.eq(divisor),
@@ -203,7 +215,7 @@ class SdioHost(wiring.Component):
         r1b     = Signal()
         pending = Signal()           # a data phase or busy wait waits for the response
         command = self._command.f
-        with m.If(command.index.w_stb & ~cmd.busy):
+        with m.If(command.index.w_stb & settled & ~cmd.busy):
             m.d.comb += [
                 cmd.start.eq(1),
                 cmd.index.eq(command.index.w_data),

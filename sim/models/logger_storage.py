@@ -129,6 +129,14 @@ class StoragePath:
         self.ring = Ring(ring_capacity)
         self._buffer = [0] * (_BLOCK // 4)     # a memory: survives resets
         self._dat0_low_until = 0               # the card's busy: survives resets
+        # The SD host's settings but the clock's survive resets too (write-only, reset-less;
+        # the firmware writes the argument and block count before each use). The timeouts
+        # are in SD clocks here: the host counts the long ones in ticks of TICK_CLOCKS and
+        # ends them N to N + 1 ticks after their start; the model takes the shortest, N.
+        self._argument, self._blocks = 0, 1
+        self._response_timeout = arch_sd.N_CR_MAX
+        self._busy_timeout = BUSY_TIMEOUT_TICKS * TICK_CLOCKS
+        self._read_timeout = READ_TIMEOUT_TICKS * TICK_CLOCKS
         self.reset()
 
     def reset(self):
@@ -139,12 +147,6 @@ class StoragePath:
         self._dma_sent, self._dma_first = 0, 0
         self._buf_index, self._fill = 0, 0
         self._sd_divisor, self._sd_run = 0, 0
-        self._argument, self._blocks = 0, 1
-        self._response_timeout = arch_sd.N_CR_MAX
-        # (In SD clocks. The host counts these timeouts in ticks of TICK_CLOCKS and ends
-        # them N to N + 1 ticks after their start; the model takes the shortest, N ticks.)
-        self._busy_timeout = BUSY_TIMEOUT_TICKS * TICK_CLOCKS
-        self._read_timeout = READ_TIMEOUT_TICKS * TICK_CLOCKS
         self._cmd_status = dict.fromkeys(_CMD_FLAGS, 0)
         self._write_status = dict.fromkeys(_WRITE_FLAGS, 0)
         self._read_status = dict.fromkeys(_READ_FLAGS, 0)
