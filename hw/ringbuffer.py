@@ -217,15 +217,15 @@ class RingBuffer(wiring.Component):
         ]
 
         # The controller's port: writes first (they are few), then sector reads. Byte
-        # addresses within the ring, in words.
-        m.d.comb += self.mem.payload.write.eq(write_valid)
-        with m.If(write_valid):
-            m.d.comb += [self.mem.valid.eq(1), write_taken.eq(self.mem.ready),
-                         self.mem.payload.addr.eq(wr[lane_bits:bits - 1])]
-        with m.Elif(read_valid):
-            m.d.comb += [self.mem.valid.eq(1), read_taken.eq(self.mem.ready),
-                         self.mem.payload.addr.eq(Cat(issued[:word_bits], base[:sbits - 1]))]
+        # addresses within the ring, in words. Every field is given by an expression, none
+        # in an `If` (see `Dma._fill_from_sd` on Icarus and partly driven signals).
         m.d.comb += [
+            self.mem.valid.eq(write_valid | read_valid),
+            write_taken.eq(write_valid & self.mem.ready),
+            read_taken.eq(~write_valid & read_valid & self.mem.ready),
+            self.mem.payload.write.eq(write_valid),
+            self.mem.payload.addr.eq(Mux(write_valid, wr[lane_bits:bits - 1],
+                                         Cat(issued[:word_bits], base[:sbits - 1]))),
             self.mem.payload.data.eq(Cat([self.i.payload.data] * lanes)),
             self.mem.payload.mask.eq(Const(1, lanes) << wr[:lane_bits] if lane_bits else 1),
         ]
