@@ -187,3 +187,44 @@ def test_command_fields_take_their_values_from_arch(gateware, firmware):
     assert {m.name: m.value for m in gateware} == {m.name: m.value for m in firmware}
     fields = RegisterMap(SdioHost().bus.memory_map)["command"]
     assert fields.field("kind").width == fields.field("data").width == 2
+
+
+@pytest.mark.parametrize("reset", [False, True])
+def test_command_written_in_a_reset_cycle_is_dropped(reset):
+    # The CSR bridge runs reset-less and still passes on, one cycle later, a write it took in
+    # a reset cycle; the host drops it (as a reset bridge would). The reset comes as the
+    # logger's watchdog gives it (a ResetInserter). Without the reset the same write sends
+    # the command (CMD0: the CMD line is driven).
+    from amaranth import Elaboratable, Module, Signal
+    from amaranth.hdl import ResetInserter
+    from maglog.sim.backends.amaranth import run_simulation
+    host = SdioHost()
+    regs = RegisterMap(host.bus.memory_map)
+    driven = []
+
+    class Top(Elaboratable):
+        rst = Signal()
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.host = ResetInserter({"sync": self.rst})(host)
+            return m
+
+    top = Top()
+
+    async def bench(ctx):
+        await ctx.tick().repeat(3)
+        ctx.set(host.bus.addr, regs["command"].address)
+        ctx.set(host.bus.w_data, regs["command"].encode(
+            index=0, kind=ResponseKind.NONE.value, r1b=0, data=DataPhase.NONE.value))
+        ctx.set(host.bus.w_stb, 1)
+        ctx.set(top.rst, int(reset))
+        await ctx.tick()
+        ctx.set(host.bus.w_stb, 0)
+        ctx.set(top.rst, 0)
+        for _ in range(40):
+            await ctx.tick()
+            driven.append(ctx.get(host.sd.cmd_oe))
+
+    run_simulation(top, [bench], name="sdio_reset_write", deadline=1e-3)
+    assert any(driven) != reset
