@@ -5,7 +5,7 @@ from amaranth.lib import enum, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from ..arch import sd as arch
-from ..soc import csr
+from ..soc import WordBridge, csr
 from .clock import TICK_CLOCKS, SdClock
 from .cmd import CmdEngine, CmdStatus, ResponseKind
 from .dat import (BUSY_TIMEOUT_TICKS, READ_TIMEOUT_TICKS, TIMEOUT_TICK_BITS, DatReader,
@@ -139,26 +139,19 @@ class SdioHost(wiring.Component):
         # (Named response0..3: the vendored Bridge cannot name registers under an Index.)
         self._response = [regs.add(f"response{word}", self.Response())
                           for word in range(arch.R2_CONTENT_BITS // 32)]
-        self._bridge = csr.Bridge(regs.as_memory_map())
+        self._bridge = WordBridge(regs.as_memory_map())
         super().__init__()
         self.bus.memory_map = self._bridge.bus.memory_map
 
     def elaborate(self, platform):
         m = Module()
-        # The bridge's registers (its read and write shadows and strobe delays) hold nothing
-        # worth a reset (resetting its 64 shadow bits costs a LUT each): it runs in a
-        # reset-less copy of `sync`. A write it still passes on in the cycle after a reset
-        # (`settled` low) is dropped below, as a reset bridge would drop it.
-        m.domains.sdio_csr = ClockDomain("sdio_csr", reset_less=True, local=True)
-        m.d.comb += ClockSignal("sdio_csr").eq(ClockSignal("sync"))
-        m.submodules.bridge = DomainRenamer("sdio_csr")(self._bridge)
+        # Every register is one bus word: WordBridge needs no shadow (hw/soc.py).
+        m.submodules.bridge = self._bridge
         m.submodules.clock  = clock  = SdClock(divisor_bits=DIVISOR_BITS)
         m.submodules.cmd    = cmd    = CmdEngine()
         m.submodules.writer = writer = DatWriter()
         m.submodules.reader = reader = DatReader()
         wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
-        settled = Signal()           # low in the first cycle after a reset
-        m.d.sync += settled.eq(1)
 
         for engine in (cmd, writer, reader):
             m.d.comb += [engine.rise.eq(clock.rise), engine.fall.eq(clock.fall)]
@@ -195,7 +188,7 @@ class SdioHost(wiring.Component):
                               (self._timeouts.f.response, timeout),
                               (self._busy_timeout.f.ticks, busy_timeout),
                               (self._read_timeout.f.ticks, read_timeout)):
-            with m.If(field.w_stb & settled):
+            with m.If(field.w_stb):
                 m.d.sync += target.eq(field.w_data)
         m.d.comb += [
             clock.divisor.eq(divisor),
@@ -215,7 +208,7 @@ class SdioHost(wiring.Component):
         r1b     = Signal()
         pending = Signal()           # a data phase or busy wait waits for the response
         command = self._command.f
-        with m.If(command.index.w_stb & settled & ~cmd.busy):
+        with m.If(command.index.w_stb & ~cmd.busy):
             m.d.comb += [
                 cmd.start.eq(1),
                 cmd.index.eq(command.index.w_data),
