@@ -129,11 +129,13 @@ class SdramController(wiring.Component):
         next_cmd = Signal(3)
         m.d.comb += next_cmd.eq(arch.Command.NOP)
         m.d.sync += [cmd.eq(next_cmd), pins.cs_n.eq(0)]
-        # Address, bank and write data: pure datapath (they mean something only with a
-        # command), so without reset.
-        a = Signal(g.address_bits, reset_less=True)
-        ba = Signal(g.bank_bits, reset_less=True)
-        dq_o = Signal(g.data_width, reset_less=True)
+        # Address, bank and write data. They mean something only with a command, but they
+        # keep their reset: a register that holds its value and has no reset is X in Icarus
+        # (its hold is computed before its initial value is set), and the chip model there
+        # reads every pin at every edge.
+        a = Signal(g.address_bits)
+        ba = Signal(g.bank_bits)
+        dq_o = Signal(g.data_width)
         m.d.comb += [pins.a.eq(a), pins.ba.eq(ba), pins.dq_o.eq(dq_o)]
 
         # Address fields of the request.
