@@ -291,8 +291,9 @@ class Dma(wiring.Component):
                     m.d.sync += [asked.eq(0), busy.eq(0), discarding.eq(0)]
         with m.Elif(busy & (source == DmaSource.RING)):
             with m.If(~asked):
-                # Asks the ring for the next sector once it is free.
-                with m.If(~ring.reading):
+                # Asks the ring for the next sector once it is free (and not in a release's
+                # clock: the ring has one adder for both).
+                with m.If(~ring.reading & ~ring.release):
                     m.d.comb += ring.read_start.eq(1)
                     m.d.sync += asked.eq(1)
             with m.Else():

@@ -21,7 +21,8 @@ class RingPort(wiring.Signature):
     Members
     -------
     read_start : ``Out(1)``; read_sector : ``Out(16)``
-        Read sector ``read_sector`` after the read pointer (taken while not ``reading``).
+        Read sector ``read_sector`` after the read pointer (taken while not ``reading`` and
+        not ``release``).
     data : ``In(stream.Signature(8))``
         The sector's 512 bytes.
     reading : ``In(1)``
@@ -174,8 +175,12 @@ class RingBuffer(wiring.Component):
         with m.If(drop_event):
             m.d.sync += port.dropped.eq(port.dropped + 1)
 
+        # One adder for the read pointer's two sums: a release and the start of a sector read
+        # never come in the same clock (the DMA does not start a read while it releases).
+        rd_sum = Signal(sbits)
+        m.d.comb += rd_sum.eq(rd + Mux(port.release, port.release_sectors, port.read_sector))
         with m.If(port.release):
-            m.d.sync += rd.eq(rd + port.release_sectors)
+            m.d.sync += rd.eq(rd_sum)
         # Clear wins over a write and a release in the same cycle (the firmware clears only
         # with no frame coming in and no sector being read).
         with m.If(port.clear):
@@ -195,11 +200,11 @@ class RingBuffer(wiring.Component):
         out_count = Signal(sector_bits)             # bytes out (back to 0 after the last)
         read_valid = Signal()
         read_taken = Signal()
-        with m.If(port.read_start & ~port.reading):
+        with m.If(port.read_start & ~port.reading & ~port.release):
             m.d.sync += [
                 port.reading.eq(1),
                 sector.eq(port.read_sector),
-                base.eq(rd + port.read_sector),
+                base.eq(rd_sum),
                 issued.eq(0), arrived.eq(0),
             ]
         m.d.comb += read_valid.eq(port.reading & ~issued[word_bits])
@@ -208,7 +213,7 @@ class RingBuffer(wiring.Component):
         with m.If(self.mem_data.valid):
             m.d.sync += arrived.eq(arrived + 1)
         m.d.sync += arrived_before.eq(arrived)
-        with m.If(port.read_start & ~port.reading):
+        with m.If(port.read_start & ~port.reading & ~port.release):
             m.d.sync += arrived_before.eq(0)
         m.d.comb += [
             w_port.addr.eq(arrived[:word_bits]),
