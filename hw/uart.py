@@ -88,9 +88,11 @@ class UartRx(wiring.Component):
         m.submodules.sync = FFSynchronizer(self.rx, line, init=arch.MARK)
 
         # Oversampling tick: a down-counter from `divisor` reaching 1 (or 0, so that a
-        # divisor of 0 acts as 1); a new divisor counts from the next tick on. Datapath
+        # divisor of 0 acts as 1); a new divisor counts from the next tick on. It keeps its
+        # reset: its next value depends on itself, so in a simulator an unknown divisor
+        # before the reset (an undriven port) would leave it unknown for ever. Datapath
         # registers below are loaded before they are used, so they need no reset.
-        count = Signal(self._divisor_bits, reset_less=True)
+        count = Signal(self._divisor_bits)
         tick  = Signal()
         m.d.comb += tick.eq(count[1:] == 0)
         m.d.sync += count.eq(Mux(tick, self.divisor, count - 1))
