@@ -73,9 +73,9 @@ class RingBuffer(wiring.Component):
     last byte is in (the committed pointer). A frame that does not fit is dropped whole and
     counted: the ring never writes over bytes that have not been released, i.e. that have
     not reached the card. The read side serves 512-byte sectors counted from the read
-    pointer: committed bytes, then zeros (the last, partial sector of a flush is written
-    padded, and again with more data at the next flush). ``release`` moves the read pointer
-    on by whole sectors once the card has them.
+    pointer: the bytes committed as its read starts, then zeros (the last, partial sector
+    of a flush is written padded, and again with more data at the next flush). ``release``
+    moves the read pointer on by whole sectors once the card has them.
 
     Each byte is one SDRAM word write with a byte mask (the serial data rate is far below
     what that costs); sector reads are word reads, one a clock, into a sector buffer (one
@@ -192,7 +192,11 @@ class RingBuffer(wiring.Component):
         m.submodules.words = words = Memory(shape=g.data_width, depth=sector_words, init=[])
         w_port = words.write_port()
         r_port = words.read_port()
-        sector = Signal(sbits, reset_less=True)     # the sector read, after the read pointer
+        # Which bytes of the sector read are committed, as its read starts: all of them
+        # (`whole`), or its first `end` (`part`, until the count reaches `end`), or none.
+        whole = Signal()
+        part = Signal()
+        end = Signal(sector_bits, reset_less=True)
         base = Signal(sbits, reset_less=True)       # the sector read, in the ring
         issued = Signal(word_bits + 1)              # words asked of the controller
         arrived = Signal(word_bits + 1)             # words in the buffer
@@ -200,10 +204,14 @@ class RingBuffer(wiring.Component):
         out_count = Signal(sector_bits)             # bytes out (back to 0 after the last)
         read_valid = Signal()
         read_taken = Signal()
+        with m.If(out_count == end):
+            m.d.sync += part.eq(0)
         with m.If(port.read_start & ~port.reading & ~port.release):
             m.d.sync += [
                 port.reading.eq(1),
-                sector.eq(port.read_sector),
+                whole.eq(port.read_sector < port.level[sector_bits:]),
+                part.eq(port.read_sector == port.level[sector_bits:]),
+                end.eq(commit[:sector_bits]),
                 base.eq(rd_sum),
                 issued.eq(0), arrived.eq(0),
             ]
@@ -249,7 +257,8 @@ class RingBuffer(wiring.Component):
             with m.If(step):
                 m.d.comb += next_word.eq(word + 1)
         m.d.comb += r_port.addr.eq(next_word)
-        committed_byte = Cat(out_count, sector) < port.level
+        at_end = out_count == end
+        committed_byte = whole | (part & ~at_end)
         byte = r_port.data.word_select(out_count[:lane_bits], 8) if lanes > 1 else r_port.data
         m.d.comb += [
             port.data.valid.eq(port.reading & (arrived_before != word)),
