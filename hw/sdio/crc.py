@@ -7,7 +7,8 @@ from amaranth.lib.wiring import In, Out
 from ..arch import sd as arch
 
 
-__all__ = ["SerialCrc", "Crc7", "Crc16", "Crc16Lanes"]
+__all__ = ["SerialCrc", "Crc7", "Crc16", "crc16_lanes_signature", "Crc16Lanes",
+           "SharedCrc16Lanes"]
 
 
 class SerialCrc(wiring.Component):
@@ -62,6 +63,17 @@ class Crc16(SerialCrc):
         super().__init__(arch.CRC16_BITS, arch.CRC16_POLY)
 
 
+def crc16_lanes_signature(lanes=4):
+    """The user's side of :class:`Crc16Lanes` (an engine's ``Out`` port to connect to it):
+    ``clear``, ``en``, ``bits`` out, each line's ``crc`` in."""
+    return wiring.Signature({
+        "clear": Out(1),
+        "en":    Out(1),
+        "bits":  Out(lanes),
+        "crc":   In(arch.CRC16_BITS).array(lanes),
+    })
+
+
 class Crc16Lanes(wiring.Component):
     """One CRC16 per DAT line: in 4-bit mode each line carries its own CRC.
 
@@ -93,4 +105,39 @@ class Crc16Lanes(wiring.Component):
                 crc.bit.eq(self.bits[lane]),
                 self.crc[lane].eq(crc.crc),
             ]
+        return m
+
+
+class SharedCrc16Lanes(wiring.Component):
+    """One :class:`Crc16Lanes` for several users that never use it at the same time (the SD
+    host's block writer and reader: it runs one data phase at a time).
+
+    ``clear`` and ``en`` are any user's; ``bits`` are those of the first user (in order)
+    whose ``en`` is high. Every user sees the same ``crc``. Users that overlap corrupt each
+    other's CRCs.
+
+    Members
+    -------
+    users : ``In(crc16_lanes_signature(lanes))`` × users
+    """
+    def __init__(self, lanes=4, users=2):
+        if not isinstance(users, int) or users < 1:
+            raise ValueError(f"Users must be a positive integer, not {users!r}")
+        self._lanes = Crc16Lanes(lanes)
+        self._users = users
+        super().__init__({"users": In(crc16_lanes_signature(lanes)).array(users)})
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.lanes = lanes = self._lanes
+        bits = self.users[-1].bits
+        for user in reversed(self.users[:-1]):
+            bits = Mux(user.en, user.bits, bits)
+        m.d.comb += [
+            lanes.clear.eq(Cat(user.clear for user in self.users).any()),
+            lanes.en.eq(Cat(user.en for user in self.users).any()),
+            lanes.bits.eq(bits),
+        ]
+        for user in self.users:
+            m.d.comb += [user.crc[lane].eq(lanes.crc[lane]) for lane in range(len(user.crc))]
         return m

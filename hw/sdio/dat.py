@@ -6,7 +6,7 @@ from amaranth.lib.wiring import In, Out
 
 from ..arch import sd as arch
 from .clock import TICK_CLOCKS
-from .crc import Crc16Lanes
+from .crc import crc16_lanes_signature
 
 
 __all__ = ["BUSY_TIMEOUT_TICKS", "READ_TIMEOUT_TICKS", "WriteStatus", "DatWriter",
@@ -83,6 +83,12 @@ class DatWriter(wiring.Component):
     busy, done : ``Out(1)``; status : ``Out(WriteStatus)``; accepted : ``Out(16)``
     r1b_timeout : ``Out(1)``
         The last ``wait_busy`` ended by the busy timeout.
+    crc : ``Out(crc16_lanes_signature(4))``
+        To a :class:`~.crc.Crc16Lanes` (shared with the reader in the host): cleared at the
+        start bit, fed each data nibble and CRC bit; the lines' top bits are sent.
+
+    ``blocks`` must stay unchanged through a run: the run ends when ``accepted + 1`` blocks
+    equal it at a block's end.
     """
     rise:          In(1)
     fall:          In(1)
@@ -102,14 +108,14 @@ class DatWriter(wiring.Component):
     status:        Out(WriteStatus)
     accepted:      Out(16)
     r1b_timeout:   Out(1)
+    crc:           Out(crc16_lanes_signature(LANES))
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.crc16 = crc = Crc16Lanes(LANES)
+        crc = self.crc
 
         state   = Signal(_WState)
         count   = Signal(range(arch.DATA_NIBBLES + 1))
-        left    = Signal(16)                       # blocks still to send
         waited  = Signal(8)                        # rising edges since the block's end,
                                                    # then since the token's
         ticks   = Signal(TIMEOUT_TICK_BITS)        # busy timeout ticks left
@@ -132,6 +138,13 @@ class DatWriter(wiring.Component):
         next_state  = Signal(_WState)
         m.d.comb += next_state.eq(state)
 
+        # The block going out is the run's last (`blocks` is constant through a run). One
+        # cycle late: it is only used from a block's CRC on, long after `accepted` moved.
+        last = Signal()
+        next_accepted = Signal(16)
+        m.d.comb += next_accepted.eq(self.accepted + 1)
+        m.d.sync += last.eq(next_accepted == self.blocks)
+
         in_state = {s: state == s for s in _WState}
         go_write = in_state[_WState.IDLE] & self.start & (self.blocks != 0)
         go_busy  = in_state[_WState.IDLE] & self.wait_busy & ~go_write
@@ -141,7 +154,7 @@ class DatWriter(wiring.Component):
         wanted = Signal()
         m.d.comb += wanted.eq(
             state.as_value().matches(_WState.PREAMBLE, _WState.START, _WState.DATA) |
-            (~r1b & (left > 1) &
+            (~r1b & ~last &
              state.as_value().matches(_WState.CRC, _WState.END, _WState.RELEASE,
                                       _WState.TOKEN, _WState.BUSY_START, _WState.BUSY)))
         m.d.comb += [
@@ -255,7 +268,7 @@ class DatWriter(wiring.Component):
         # A block done ends an R1b wait, or the run after its last block.
         block_counted = block_done & ~r1b
         with m.If(block_done):
-            with m.If(r1b | (left == 1)):
+            with m.If(r1b | last):
                 m.d.comb += finish.eq(1)
             with m.Else():
                 m.d.comb += next_state.eq(_WState.PREAMBLE)
@@ -283,9 +296,9 @@ class DatWriter(wiring.Component):
         with m.If(in_state[_WState.IDLE]):
             m.d.sync += r1b.eq(~go_write)
         with m.If(go_write):
-            m.d.sync += [left.eq(self.blocks), self.accepted.eq(0), self.status.eq(0)]
+            m.d.sync += [self.accepted.eq(0), self.status.eq(0)]
         with m.Elif(block_counted):
-            m.d.sync += [left.eq(left - 1), self.accepted.eq(self.accepted + 1)]
+            m.d.sync += self.accepted.eq(next_accepted)
         with m.Elif(finish):
             m.d.sync += self.status.eq(self.status.as_value() | flags.as_value())
         with m.If(go_busy):
@@ -363,6 +376,9 @@ class DatReader(wiring.Component):
         (100 ms at 25 MHz by default, PLSS §4.6.2.1).
     o : ``Out(stream.Signature(8))``
     busy, done : ``Out(1)``; status : ``Out(ReadStatus)``
+    crc : ``Out(crc16_lanes_signature(4))``
+        To a :class:`~.crc.Crc16Lanes` (shared with the writer in the host): cleared while
+        the start bit is awaited, fed the data and CRC bits received.
     """
     rise:    In(1)
     fall:    In(1)
@@ -375,10 +391,11 @@ class DatReader(wiring.Component):
     busy:    Out(1)
     done:    Out(1)
     status:  Out(ReadStatus)
+    crc:     Out(crc16_lanes_signature(LANES))
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.crc16 = crc = Crc16Lanes(LANES)
+        crc = self.crc
 
         state   = Signal(_RState)
         count   = Signal(range(arch.DATA_NIBBLES))   # nibbles, then CRC bits (it wraps
@@ -399,7 +416,7 @@ class DatReader(wiring.Component):
             self.busy.eq(~idle),
             # Hold the clock while a received byte waits to be taken.
             self.run.eq(~(self.o.valid & ~self.o.ready)),
-            crc.clear.eq(idle),
+            crc.clear.eq(wait),
             crc.en.eq(self.rise & (data | crc_bits)),
             crc.bits.eq(self.dat_i),
         ]

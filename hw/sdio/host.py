@@ -8,6 +8,7 @@ from ..arch import sd as arch
 from ..soc import WordBridge, csr
 from .clock import TICK_CLOCKS, SdClock
 from .cmd import CmdEngine, CmdStatus, ResponseKind
+from .crc import SharedCrc16Lanes
 from .dat import (BUSY_TIMEOUT_TICKS, READ_TIMEOUT_TICKS, TIMEOUT_TICK_BITS, DatReader,
                   DatWriter, ReadStatus, WriteStatus)
 
@@ -89,7 +90,7 @@ class SdioHost(wiring.Component):
 
     class Blocks(csr.Register, access="w"):
         """Blocks to write in the next write data phase (1 at power-up; kept through a
-        reset, as are the argument and the timeouts)."""
+        reset, as are the argument and the timeouts). Not to be changed during a write."""
         count: csr.Field(csr.action.W, 16)
 
     class Timeouts(csr.Register, access="w"):
@@ -151,6 +152,11 @@ class SdioHost(wiring.Component):
         m.submodules.cmd    = cmd    = CmdEngine()
         m.submodules.writer = writer = DatWriter()
         m.submodules.reader = reader = DatReader()
+        # One data phase at a time (a read is armed by its command, a write or busy wait
+        # follows its command's response): the writer and the reader share the CRC16 lanes.
+        m.submodules.crc16  = crc16  = SharedCrc16Lanes(4, users=2)
+        wiring.connect(m, writer.crc, crc16.users[0])
+        wiring.connect(m, reader.crc, crc16.users[1])
         wiring.connect(m, wiring.flipped(self.bus), self._bridge.bus)
 
         for engine in (cmd, writer, reader):

@@ -14,6 +14,7 @@ from amaranth.lib.wiring import In, Out
 
 from maglog.hw.arch import sd as arch
 from maglog.hw.sdio.clock import TICK_CLOCKS, SdClock
+from maglog.hw.sdio.crc import Crc16Lanes
 from maglog.hw.sdio.dat import DatReader, DatWriter
 from maglog.sim.backends.amaranth import collect_payloads, feed_stream, run_simulation
 
@@ -30,7 +31,8 @@ def lane_crcs(block):
 
 
 class Harness(wiring.Component):
-    """SdClock driving one engine; the DAT bus is left to the test."""
+    """SdClock driving one engine, with its own CRC16 lanes; the DAT bus is left to the
+    test."""
     def __init__(self, engine):
         self.clock = SdClock()
         self.engine = engine
@@ -39,6 +41,8 @@ class Harness(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         m.submodules.clock, m.submodules.engine = self.clock, self.engine
+        m.submodules.crc16 = crc16 = Crc16Lanes(4)
+        wiring.connect(m, self.engine.crc, crc16)
         m.d.comb += [
             self.clock.divisor.eq(self.divisor),
             self.clock.run.eq(self.engine.run),

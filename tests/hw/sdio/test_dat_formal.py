@@ -73,6 +73,7 @@ from amaranth.lib import enum, wiring
 from amaranth.lib.wiring import In
 
 from maglog.hw.arch import sd as arch
+from maglog.hw.sdio.crc import Crc16Lanes
 from maglog.hw.sdio.dat import DatWriter, _WState
 import formal      # tests/support/formal.py, on sys.path by tests/conftest.py
 
@@ -131,20 +132,22 @@ def _assigned_signals(statements):
 
 
 class ProbedDatWriter(DatWriter):
-    """DatWriter, unchanged, with handles on the registers the invariants are about.
+    """DatWriter, unchanged, with its CRC16 lanes (as the host gives it: it alone drives them
+    through a write) and handles on the registers the invariants are about.
 
     DatWriter keeps its state in local variables of ``elaborate()``: no attribute reaches
     them. They are found by name among the signals its elaborated fragment assigns
     (``Fragment.statements``, walked through assignments' ``lhs`` and switches' ``cases``);
     a renamed or missing one is an error here, not a silently weaker proof. The CRC
-    registers are the ``crc`` ports of its ``crc16`` submodule, and the values of ``state``
-    are its (private) enum ``_WState``. After elaboration, ``probes`` holds ``state``,
-    ``count``, ``left``, ``byte``, ``loaded``, ``low``, ``crc`` (one signal per line), the
+    registers are the ``crc`` ports of the ``Crc16Lanes`` added here on its ``crc`` port,
+    and the values of ``state`` are its (private) enum ``_WState``. After elaboration,
+    ``probes`` holds ``state``, ``count``, ``byte``, ``loaded``, ``low``, ``crc`` (one
+    signal per line), the
     writer's own ``dat_o`` and ``dat_oe`` registers, ``nibbles`` (the block length it was
     built for) and ``initial``: conditions on a variant's own registers for a check from
     anywhere (none here).
     """
-    PROBED = ("state", "count", "left", "byte", "loaded", "low")
+    PROBED = ("state", "count", "byte", "loaded", "low")
     #: Data nibbles per block this writer is built for (a broken variant sends fewer).
     DATA_NIBBLES = arch.DATA_NIBBLES
 
@@ -152,7 +155,8 @@ class ProbedDatWriter(DatWriter):
 
     def elaborate(self, platform):
         m = super().elaborate(platform)
-        crc = m.submodules.crc16
+        m.submodules.crc16 = crc = Crc16Lanes(LANES)
+        wiring.connect(m, self.crc, crc)
         fragment = Fragment.get(m, platform)
         found = {name: {} for name in self.PROBED}
         for domain in ("sync", "comb"):
@@ -205,9 +209,9 @@ class MisdrivenWriter(wiring.Component):
         initial = []
         self.probes = SimpleNamespace(**{**vars(w), "initial": initial})
         for path, member, port in self.signature.flatten(self):
+            if path in (("dat_o",), ("dat_oe",)) or path[0] == "crc":
+                continue            # (the CRC port is tied to the writer's own lanes)
             inner = functools.reduce(getattr, path, writer)
-            if path in (("dat_o",), ("dat_oe",)):
-                continue
             if member.flow == In:
                 m.d.comb += inner.eq(port)
             else:
@@ -496,8 +500,9 @@ class DatWriterSpec(Elaboratable):
         cover("block_start", fell & (phase == _Phase.DATA) & (count == 1))
         if "block_end" in self.covers:
             # Anywhere in the data of the only block of a run, its first nibble sent.
+            m.d.comb += Assume(dut.blocks == 1)
             m.d.comb += Assume(~first | ((w.state == state.DATA) & (w.count != 0) &
-                                         (w.left == 1) & (dut.accepted == 0) &
+                                         (dut.accepted == 0) &
                                          (dut.status.as_value() == 0) & ~busy_seen))
             cover("block_end", dut.done & (dut.status.as_value() == 0) & (dut.accepted == 1) &
                   busy_seen)
