@@ -4,6 +4,8 @@ The rules, byte by byte and with the counter each dropped frame goes to, are tho
 docs/frame-rules.md.
 """
 
+import operator
+
 from amaranth import *
 from amaranth.lib import enum, stream, wiring
 from amaranth.lib.wiring import In, Out
@@ -48,12 +50,12 @@ def _between(value, low, high):
 
 def _hex_digit(char):
     """(is a hex digit, its value) of an ASCII character, either case."""
-    is_digit = _between(char, "0", "9")
-    is_upper = _between(char, "A", "F")
-    is_lower = _between(char, "a", "f")
-    value = Mux(is_digit, char - ord("0"),
-            Mux(is_upper, char - ord("A") + 10, char - ord("a") + 10))[:4]
-    return is_digit | is_upper | is_lower, value
+    # Digits are 0x30-0x39, letters 0x41-0x46 or 0x61-0x66 (bit 5 is the case): a letter's
+    # value is its low nibble plus 9.
+    is_digit  = (char[4:] == 0x3) & (char[:4] <= 9)
+    is_letter = (char[6:] == 0b01) & (char[3:5] == 0) & (char[:3] != 0) & (char[:3] != 7)
+    value = Mux(is_digit, char[:4], char[:4] + 9)[:4]
+    return is_digit | is_letter, value
 
 
 class FrameFilter(wiring.Component):
@@ -138,15 +140,17 @@ class FrameFilter(wiring.Component):
         checked = kind in (ChannelKind.NMEA, ChannelKind.PMAG)
 
         # Frame state.
+        # Only `in_frame` is reset: the rest is set by every `$` before it is used.
         in_frame   = Signal()
-        length     = Signal(range(self._max_frame + 1))   # bytes so far, `$` and CR included
-        pending_cr = Signal()
-        xor        = Signal(8)                            # of the body bytes so far
-        tail       = Signal(24)                           # last three body bytes, newest low
-        word       = Signal(_Word)
-        star_seen  = Signal()
-        field      = Signal(range(arch.GGA_QUALITY_FIELD + 2))
-        quality    = Signal(_Quality)
+        length     = Signal(range(self._max_frame + 1),   # bytes so far, `$` and CR included
+                            reset_less=True)
+        pending_cr = Signal(reset_less=True)
+        xor        = Signal(8, reset_less=True)           # of the body bytes so far
+        tail       = Signal(24, reset_less=True)          # last three body bytes, newest low
+        word       = Signal(_Word, reset_less=True)
+        star_seen  = Signal(reset_less=True)
+        field      = Signal(range(arch.GGA_QUALITY_FIELD + 2), reset_less=True)
+        quality    = Signal(_Quality, reset_less=True)
 
         m.d.comb += self.i.ready.eq(1)
         char  = self.i.payload.data
@@ -166,25 +170,32 @@ class FrameFilter(wiring.Component):
         is_cr     = char == arch.CR
         is_lf     = char == arch.LF
 
-        # Position check of the channel's kind, for a body byte at position `length`.
+        # Position check of the channel's kind, for a body byte at position `length`. The
+        # first NMEA positions come one-hot from `head` (bit k: `length == k + 1`), set by `$`
+        # and shifted by every byte appended, instead of compares of `length`.
+        n_head = arch.NMEA_ADDRESS_END_POS if kind == ChannelKind.NMEA else 0
+        head = Signal(max(1, n_head), reset_less=True)
+
+        def at(position):
+            return head[position - 1]
+
         m.d.comb += position_ok.eq(1)
         if kind == ChannelKind.NMEA:
-            with m.Switch(length):
-                with m.Case(1, 2):
-                    m.d.comb += position_ok.eq(_between(char, "A", "Z"))
-                for offset in range(3):
-                    with m.Case(arch.NMEA_FORMATTER_POS + offset):
-                        letters = {_Word[name]: ord(name[offset]) for name in arch.NMEA_WHITELIST}
-                        if offset == 0:
-                            m.d.comb += position_ok.eq(
-                                Cat(char == letter for letter in letters.values()).any())
-                        else:
-                            with m.Switch(word):
-                                for w, letter in letters.items():
-                                    with m.Case(w):
-                                        m.d.comb += position_ok.eq(char == letter)
-                with m.Case(arch.NMEA_ADDRESS_END_POS):
-                    m.d.comb += position_ok.eq(char == arch.COMMA)
+            with m.If(at(1) | at(2)):
+                m.d.comb += position_ok.eq(_between(char, "A", "Z"))
+            for offset in range(3):
+                with m.If(at(arch.NMEA_FORMATTER_POS + offset)):
+                    letters = {_Word[name]: ord(name[offset]) for name in arch.NMEA_WHITELIST}
+                    if offset == 0:
+                        m.d.comb += position_ok.eq(
+                            Cat(char == letter for letter in letters.values()).any())
+                    else:
+                        with m.Switch(word):
+                            for w, letter in letters.items():
+                                with m.Case(w):
+                                    m.d.comb += position_ok.eq(char == letter)
+            with m.If(at(arch.NMEA_ADDRESS_END_POS)):
+                m.d.comb += position_ok.eq(char == arch.COMMA)
         elif kind == ChannelKind.PMAG:
             with m.Switch(length):
                 for offset, letter in enumerate(arch.PMAG_HEADER):
@@ -205,24 +216,26 @@ class FrameFilter(wiring.Component):
                     m.d.comb += position_ok.eq(0)
 
         # End checks at the LF.
-        body_len = Signal(range(self._max_frame + 1))
-        m.d.comb += body_len.eq(length - 1 - pending_cr)
+        # The body's length is `length - 1 - pending_cr`; compared with constants per
+        # `pending_cr` (no subtraction).
+        def body_len_is(op, value):
+            return Mux(pending_cr, op(length, value + 2), op(length, value + 1))
         end_ok    = Signal()
         end_cause = Signal(arch.DropCause)
         if checked:
             star, high, low = tail[16:24], tail[8:16], tail[0:8]
             high_ok, high_value = _hex_digit(high)
             low_ok, low_value = _hex_digit(low)
-            with m.If(body_len < arch.CHECKED_MIN_BODY):
+            with m.If(body_len_is(operator.lt, arch.CHECKED_MIN_BODY)):
                 m.d.comb += end_cause.eq(arch.DropCause.NOT_WHITELISTED)
             with m.Elif((star == arch.STAR) & high_ok & low_ok &
-                        ((xor ^ star ^ high ^ low) == Cat(low_value, high_value))):
+                        ((xor ^ arch.STAR ^ high ^ low) == Cat(low_value, high_value))):
                 m.d.comb += end_ok.eq(1)
             with m.Else():
                 m.d.comb += end_cause.eq(arch.DropCause.CHECKSUM)
         else:
             m.d.comb += [
-                end_ok.eq(body_len == arch.CESIUM_BODY),
+                end_ok.eq(body_len_is(operator.eq, arch.CESIUM_BODY)),
                 end_cause.eq(arch.DropCause.NOT_WHITELISTED),
             ]
 
@@ -238,7 +251,7 @@ class FrameFilter(wiring.Component):
                 m.d.comb += [drop.eq(1), cause.eq(arch.DropCause.BAD_BYTE)]
             with m.Elif(~is_cr & ~is_lf & ~printable):
                 m.d.comb += [drop.eq(1), cause.eq(arch.DropCause.BAD_BYTE)]
-            with m.Elif(length >= self._max_frame):
+            with m.Elif(length == self._max_frame):   # it never goes beyond
                 m.d.comb += [drop.eq(1), cause.eq(arch.DropCause.OVERLONG)]
             with m.Elif(is_lf):
                 with m.If(end_ok):
@@ -268,9 +281,11 @@ class FrameFilter(wiring.Component):
             m.d.sync += [
                 in_frame.eq(1),
                 length.eq(1),
+                head.eq(1),
                 pending_cr.eq(0),
                 xor.eq(0),
-                tail.eq(0),
+                # `tail` is not cleared: the checksum is looked at only with 9 body bytes or
+                # more, so its three bytes are always of this frame by then.
                 star_seen.eq(0),
                 field.eq(0),
                 quality.eq(_Quality.EMPTY),
@@ -278,7 +293,7 @@ class FrameFilter(wiring.Component):
         with m.Elif(drop | finish):
             m.d.sync += in_frame.eq(0)
         with m.Elif(append):
-            m.d.sync += length.eq(length + 1)
+            m.d.sync += [length.eq(length + 1), head.eq(head << 1)]
             with m.If(is_cr):
                 m.d.sync += pending_cr.eq(1)
             with m.Else():
@@ -287,11 +302,11 @@ class FrameFilter(wiring.Component):
                     tail.eq(Cat(char, tail[:16])),
                 ]
                 if kind == ChannelKind.NMEA:
-                    with m.If(length == arch.NMEA_FORMATTER_POS):
+                    with m.If(at(arch.NMEA_FORMATTER_POS)):
                         for name in arch.NMEA_WHITELIST:
                             with m.If(char == ord(name[0])):
                                 m.d.sync += word.eq(_Word[name])
-                    with m.If(length >= arch.NMEA_ADDRESS_END_POS):
+                    with m.If(~head[:arch.NMEA_ADDRESS_END_POS - 1].any()):   # length >= 6
                         # Fields count from the address field's comma; `*` ends them.
                         with m.If(char == arch.STAR):
                             m.d.sync += star_seen.eq(1)
