@@ -125,7 +125,10 @@ class CounterBank(wiring.Component):
         scanning = ~clearing & ~steal
         m.d.comb += taken.eq(Cat(scanning & (scan == a) for a in self._addresses))
         m.d.sync += pending.eq((pending & ~taken) | self.events)
-        m.d.sync += take.eq((pending & taken).any())
+        # The flag of the word at `scan` (a multiplexer, not an OR of one AND per counter).
+        flags = Signal(self._depth)
+        m.d.comb += [flags[a].eq(pending[k]) for k, a in enumerate(self._addresses)]
+        m.d.sync += take.eq(scanning & flags.bit_select(scan, 1))
         with m.If(clearing | ~steal):            # clearing needs the write port only
             m.d.sync += [scan.eq(scan + 1), take_at.eq(scan)]
 
