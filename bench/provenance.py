@@ -73,18 +73,18 @@ def _synth_table(report, modules):
         r = by_module[module]
         low, high = 100 * r["le_min"] / les, 100 * r["le_max"] / les
         share = f"{low:.1f}" if f"{low:.1f}" == f"{high:.1f}" else f"{low:.1f}–{high:.1f}"
-        rows.append([_design(r), r["lut4"], r["ff"], r["m9k"],
+        rows.append([_design(r), r["lut4"], r["ff"], r["m9k"], r.get("depth", "–"),
                      f"{r['le_min']}..{r['le_max']}", share])
-    return table(["block", "LUT4", "FF", "M9K", "LE range",
-                  f"% of {report['device']['name']} LEs"], rows, "lrrrrr")
+    return table(["block", "LUT4", "FF", "M9K", "depth", "LE range",
+                  f"% of {report['device']['name']} LEs"], rows, "lrrrrrr")
 
 
 def synth_frontend(report):
     by = {r["module"]: r for r in report["results"]}
     lines = _synth_table(report, ["uart_rx", "channel_nmea", "channel_pmag", "channel_cesium",
                                   "maglog_frontend", "frame_fifo", "frame_arbiter",
-                                  "channel_pmag_w1"])
-    front, pmag, narrow = by["maglog_frontend"], by["channel_pmag"], by["channel_pmag_w1"]
+                                  "channel_pmag_w32"])
+    front, pmag, wide = by["maglog_frontend"], by["channel_pmag"], by["channel_pmag_w32"]
     channels = [by[k] for k in ("channel_nmea", "channel_pmag", "channel_cesium")]
     glue_lut = front["lut4"] - sum(c["lut4"] for c in channels) - by["frame_arbiter"]["lut4"]
     glue_ff = front["ff"] - sum(c["ff"] for c in channels) - by["frame_arbiter"]["ff"]
@@ -93,13 +93,14 @@ def synth_frontend(report):
         "",
         f"- Memories: the front end uses {front['m9k']} M9K "
         f"({pct(front['m9k'] / report['device']['m9k'], 0)} % of an "
-        f"{report['device']['name']}'s {report['device']['m9k']}); "
-        f"`memory_libmap` added {sum(r['libmap_added_ff_cells'] for r in report['results'])} "
-        f"flip-flop cells in all blocks together, and the script found "
-        f"{len(report['problems'])} problem(s).",
-        f"- Counters: with 1-bit counters the PMAG channel drops from {pmag['lut4']}/"
-        f"{pmag['ff']} to {narrow['lut4']}/{narrow['ff']} LUT4/FF: the counters cost "
-        f"{pmag['lut4'] - narrow['lut4']} LUT4 and {pmag['ff'] - narrow['ff']} FF per channel.",
+        f"{report['device']['name']}'s {report['device']['m9k']}); the script found "
+        f"{len(report['problems'])} problem(s) (memory left to flip-flops, flip-flops added "
+        f"by `memory_libmap` to emulate a port, unmapped cells) in all blocks together.",
+        f"- Counters: a PMAG channel with its own seven 32-bit counters (as before issue 14) "
+        f"takes {wide['lut4']}/{wide['ff']} LUT4/FF; as the front end builds it, its "
+        f"counters in the front end's one shared counter bank (a block RAM), "
+        f"{pmag['lut4']}/{pmag['ff']}: {wide['lut4'] - pmag['lut4']} LUT4 and "
+        f"{wide['ff'] - pmag['ff']} FF less per channel.",
         f"- The front end minus its three channels and the arbiter: {glue_lut} LUT4, "
         f"{glue_ff} FF.",
         f"- Yosys time per block: {min(seconds):.1f}–{max(seconds):.1f} s.",
@@ -130,20 +131,71 @@ def synth_logger(report):
     lines = _synth_table(report, ["maglog_logger"])
     blocks = [b for b in logger["blocks"] if b["lut4"] or b["ff"] or b["m9k"]]
     total = {k: sum(b[k] for b in blocks) for k in ("lut4", "ff", "m9k")}
-    rows = [[f"`{b['block']}`", b["lut4"], b["ff"], b["m9k"],
+    rows = [[f"`{b['block']}`", b["lut4"], b["ff"], b["m9k"], b.get("depth", "–"),
              pct(b["lut4"] / total["lut4"], 1)] for b in blocks]
-    rows.append(["all blocks (not flattened)", total["lut4"], total["ff"], total["m9k"],
+    rows.append(["all blocks (not flattened)", total["lut4"], total["ff"], total["m9k"], "",
                  "100"])
-    lines += ["", *table(["block", "LUT4", "FF", "M9K", "% of the LUT4"], rows, "lrrrr")]
+    lines += ["", *table(["block", "LUT4", "FF", "M9K", "depth", "% of the LUT4"], rows,
+                         "lrrrrr")]
     fits = logger["le_min"] <= device["les"]
     lines += ["", f"The whole logger needs at least {thousands(logger['le_min'])} LEs (LUT4 "
               f"alone), {pct(logger['le_min'] / device['les'], 0)} % of an {device['name']}'s "
               f"{thousands(device['les'])}: it {'fits' if fits else 'does not fit'}. Flattened, "
               f"Yosys optimises across blocks, so the flattened total "
               f"({thousands(logger['lut4'])} LUT4) differs from the blocks' sum "
-              f"({thousands(total['lut4'])}). Yosys time: {logger['synth_seconds']:.0f} s "
-              f"flattened, {logger['blocks_seconds']:.0f} s by block."]
+              f"({thousands(total['lut4'])}). Yosys time: {logger['synth_seconds']:.0f} s for "
+              f"both runs."]
     return lines
+
+
+#: Issue 14's budget for the whole logger top, and the NIOS II/e beside it on an EP4CE6.
+LOGGER_LUT4_BUDGET = 4000
+LOGGER_M9K_BUDGET = 20
+NIOS2E_LES = 700
+FIT_SHARE = 0.80
+
+
+def synth_cut(report):
+    """The logger before and after issue 14's cuts: per block, and the whole top."""
+    base = report["baseline"]
+    before = next(r for r in base["results"] if r["module"] == "maglog_logger")
+    after = next(r for r in report["results"] if r["module"] == "maglog_logger")
+    old = {b["block"]: b for b in before["blocks"]}
+    new = {b["block"]: b for b in after["blocks"]}
+    names = sorted(set(old) | set(new), key=lambda n: (-old.get(n, new.get(n))["lut4"], n))
+    rows = []
+    for name in names:
+        o, n = old.get(name), new.get(name)
+        if not any((o or {}).get(k) for k in ("lut4", "ff", "m9k")) and \
+                not any((n or {}).get(k) for k in ("lut4", "ff", "m9k")):
+            continue
+
+        def pair(key):
+            return f"{o[key] if o else '–'} → {n[key] if n else '–'}"
+        rows.append([f"`{name}`", pair("lut4"), pair("ff"), pair("m9k"), pair("depth")])
+
+    def whole(key):
+        return f"**{before[key]} → {after[key]}**"
+    rows.append(["whole top (flattened)", whole("lut4"), whole("ff"), whole("m9k"),
+                 whole("depth")])
+    device = report["device"]
+    les = max(after["lut4"], after["ff"])
+    share = (les + NIOS2E_LES) / device["les"]
+    met = after["lut4"] <= LOGGER_LUT4_BUDGET and after["m9k"] <= LOGGER_M9K_BUDGET
+    deep = [f"`{b['block']}` {b['depth']}" for b in after["blocks"] if b["depth"] > 10]
+    tree = base.get("work_tree") or {}
+    return table(["block", "LUT4", "FF", "M9K", "depth (LUT levels)"], rows, "lrrrr") + [
+        "", f"Budget: the whole top ≤ {thousands(LOGGER_LUT4_BUDGET)} LUT4 and ≤ "
+            f"{LOGGER_M9K_BUDGET} M9K: {'met' if met else '**not met**'} "
+            f"({thousands(after['lut4'])} LUT4, {after['m9k']} M9K). With a NIOS II/e of about "
+            f"{NIOS2E_LES} LEs, at least {thousands(les + NIOS2E_LES)} of the "
+            f"{device['name']}'s {thousands(device['les'])} LEs: {pct(share, 0)} % (goal ≤ "
+            f"{pct(FIT_SHARE, 0)} %: {'met' if share <= FIT_SHARE else '**not met**'}).",
+        f"Depth goal ≤ 10 levels per block: "
+        + ("met." if not deep else "not met in " + ", ".join(deep) + "."),
+        f"Before: `{base['path']}`, commit `{str(tree.get('commit', '?'))[:7]}` "
+        f"({'clean' if not tree.get('status_porcelain') else 'not clean'}), "
+        f"{base.get('date')}, `{base.get('command')}`."]
 
 
 # --- sim_throughput.json ----------------------------------------------------------------
@@ -948,6 +1000,7 @@ BLOCKS = {
     "synth-sd": ("bench/results/synth.json", synth_sd),
     "synth-sdram": ("bench/results/synth.json", synth_sdram),
     "synth-logger": ("bench/results/synth.json", synth_logger),
+    "synth-cut": ("bench/results/synth.json", synth_cut),
     "sim-throughput": ("bench/results/sim_throughput.json", sim_throughput),
     "sim-throughput-div27": ("bench/results/sim_throughput_div27.json", sim_throughput),
     "sdio-throughput": ("bench/results/sdio_throughput.json", sdio_throughput),

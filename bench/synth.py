@@ -71,8 +71,10 @@ def designs(include_parts):
         Design("uart_rx", "UartRx()", UartRx),
     ]
     for kind in (ChannelKind.NMEA, ChannelKind.PMAG, ChannelKind.CESIUM):
-        found.append(Design(f"channel_{kind.value}", f"Channel(ChannelKind.{kind.name})",
-                            lambda kind=kind: Channel(kind)))
+        # As the front end builds them: the counters are in its shared counter bank.
+        found.append(Design(f"channel_{kind.value}",
+                            f"Channel(ChannelKind.{kind.name}, counter_width=0)",
+                            lambda kind=kind: Channel(kind, counter_width=0)))
     found.append(Design(TOPLEVEL_NAME,
                         "FrontEnd()  # " + ", ".join(c.kind.name for c in DEFAULT_CHANNELS),
                         FrontEnd))
@@ -94,11 +96,13 @@ def designs(include_parts):
                    part=True),
             Design("frame_arbiter", f"FrameArbiter({len(DEFAULT_CHANNELS)})",
                    lambda: FrameArbiter(len(DEFAULT_CHANNELS)), part=True),
-            Design("channel_pmag_w1", "Channel(ChannelKind.PMAG, counter_width=1)",
-                   lambda: Channel(ChannelKind.PMAG, counter_width=1), part=True),
+            Design("channel_pmag_w32", "Channel(ChannelKind.PMAG)  # its own 32-bit counters",
+                   lambda: Channel(ChannelKind.PMAG), part=True),
             Design("sd_cmd", "CmdEngine()", CmdEngine, part=True),
-            Design("sd_dat_writer", "DatWriter()", DatWriter, part=True),
-            Design("sd_dat_reader", "DatReader()", DatReader, part=True),
+            Design("sd_dat_writer", "DatWriter()  # its CRC lanes are the host's, shared",
+                   DatWriter, part=True),
+            Design("sd_dat_reader", "DatReader()  # its CRC lanes are the host's, shared",
+                   DatReader, part=True),
         ]
     return found
 
