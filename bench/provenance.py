@@ -190,7 +190,10 @@ def synth_cut(report):
             f"({thousands(after['lut4'])} LUT4, {after['m9k']} M9K). With a NIOS II/e of about "
             f"{NIOS2E_LES} LEs, at least {thousands(les + NIOS2E_LES)} of the "
             f"{device['name']}'s {thousands(device['les'])} LEs: {pct(share, 0)} % (goal ≤ "
-            f"{pct(FIT_SHARE, 0)} %: {'met' if share <= FIT_SHARE else '**not met**'}).",
+            f"{pct(FIT_SHARE, 0)} %: {'met' if share <= FIT_SHARE else '**not met**'}, "
+            f"counting one LE per LUT4 with the flip-flops packed beside them; with no "
+            f"flip-flop packed beside a LUT, {thousands(after['lut4'] + after['ff'] + NIOS2E_LES)}"
+            f" LEs, {pct((after['lut4'] + after['ff'] + NIOS2E_LES) / device['les'], 0)} %).",
         f"Depth goal ≤ 10 levels per block: "
         + ("met." if not deep else "not met in " + ", ".join(deep) + "."),
         f"Before: `{base['path']}`, commit `{str(tree.get('commit', '?'))[:7]}` "
