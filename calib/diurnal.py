@@ -29,8 +29,8 @@ import numpy as np
 
 from .survey_errors import SurveyError
 
-__all__ = ["BaseStation", "DiurnalCorrection", "read_base_station", "diurnal_correction",
-           "BASE_HEADER", "MAX_GAP_S", "BASE_RANGE_NT"]
+__all__ = ["BaseStation", "read_base_station", "diurnal_correction", "BASE_HEADER",
+           "MAX_GAP_S", "BASE_RANGE_NT"]
 
 #: The header's first two columns.
 BASE_HEADER = ("time_utc", "total_nT")
@@ -58,34 +58,6 @@ class BaseStation:
                 "start_utc": _utc(self.time[0]), "end_utc": _utc(self.time[-1]),
                 "median_interval_s": float(np.median(np.diff(self.time)))
                 if self.time.size > 1 else None}
-
-
-@dataclass(frozen=True, eq=False)
-class DiurnalCorrection:
-    """The result of :func:`diurnal_correction`.
-
-    ``correction`` (nT) at each sample time (NaN where the time is NaN): subtract it from
-    the survey's total field. ``reference_nT`` is the base's median over the flight's span,
-    ``span`` the flight's (first, last) time on the log's time base.
-    """
-
-    correction: np.ndarray
-    reference_nT: float
-    span: tuple
-    base: BaseStation
-    max_gap_s: float
-    epoch: _dt.datetime
-
-    def as_dict(self) -> dict:
-        c = self.correction[np.isfinite(self.correction)]
-        return {"base_file": self.base.name,
-                "reference_nT": round(self.reference_nT, 4),
-                "flight_start_utc": _utc(self.epoch.timestamp() + self.span[0]),
-                "flight_end_utc": _utc(self.epoch.timestamp() + self.span[1]),
-                "correction_min_nT": float(np.min(c)) if c.size else None,
-                "correction_max_nT": float(np.max(c)) if c.size else None,
-                "correction_std_nT": float(np.std(c)) if c.size else None,
-                "max_gap_s": float(self.max_gap_s)}
 
 
 def _utc(posix):
@@ -161,13 +133,15 @@ def read_base_station(path) -> BaseStation:
     return BaseStation(name=name, time=np.array(times), total=np.array(totals))
 
 
-def diurnal_correction(base: BaseStation, epoch, t, *, max_gap_s=MAX_GAP_S) -> DiurnalCorrection:
-    """The diurnal correction at the survey times ``t`` (seconds since ``epoch``, the log's
-    00:00 UTC: ``parsed.epoch``, an aware datetime; a naive one is taken as UTC).
+def diurnal_correction(base: BaseStation, epoch, t, *, max_gap_s=MAX_GAP_S) -> np.ndarray:
+    """The diurnal correction (nT) at the survey times ``t`` (seconds since ``epoch``, the
+    log's 00:00 UTC: ``parsed.epoch``, an aware datetime; a naive one is taken as UTC), an
+    array shaped like ``t``, NaN where ``t`` is NaN: subtract it from the survey's total field.
 
     The base readings are interpolated linearly to ``t``; the correction is that minus the
     median of the base readings within the flight's span (the first to the last finite
-    ``t``). Raises :class:`SurveyError` when ``epoch`` is None (a log without a date), when
+    ``t``; without a reading inside, the median of the two interpolated at its ends), so
+    the survey keeps its level. Raises :class:`SurveyError` when ``epoch`` is None (a log without a date), when
     the base file does not cover the flight's span, or when two consecutive base readings
     overlapping the span lie more than ``max_gap_s`` apart (naming the gap's UTC start and
     end).
@@ -203,6 +177,4 @@ def diurnal_correction(base: BaseStation, epoch, t, *, max_gap_s=MAX_GAP_S) -> D
         reference = float(np.median(np.interp([start, end], base.time, base.total)))
     correction = np.full(t.shape, np.nan)
     correction[finite] = np.interp(zero + t[finite], base.time, base.total) - reference
-    return DiurnalCorrection(correction=correction, reference_nT=reference,
-                             span=(first, last), base=base, max_gap_s=float(max_gap_s),
-                             epoch=epoch)
+    return correction

@@ -323,7 +323,7 @@ def _segments_cross(p1, p2, q1, q2):
     return 0 <= s <= 1 and 0 <= u <= 1
 
 
-def find_lines(t, north, east, *, min_length_m, peak_fraction=0.5, min_speed_m_s=1.0,
+def find_lines(t, north, east, *, min_length_m=50.0, peak_fraction=0.5, min_speed_m_s=1.0,
                max_turn_rate_deg_s=5.0, course_tolerance_deg=10.0, min_fraction=0.5,
                min_tie_crossings=2, window_s=1.5, max_sample_gap_s=2.0) -> list:
     """The survey lines and tie lines in a track (times ``t`` in s, local metres).
@@ -341,7 +341,7 @@ def find_lines(t, north, east, *, min_length_m, peak_fraction=0.5, min_speed_m_s
        time and 83 % of its length.
     3. **Straight**: the kept stretch's course (axial mean) may differ from every sample's
        course by at most ``course_tolerance_deg``, and the stretch must be at least
-       ``min_length_m`` long (start to end).
+       ``min_length_m`` (default 50 m) long (start to end).
     4. **Kinds**: stretches are grouped by axis (course modulo 180°, within
        ``course_tolerance_deg``); the axis with the most stretches holds the survey lines,
        the perpendicular one (±``course_tolerance_deg``) the tie lines; other stretches are

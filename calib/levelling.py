@@ -22,6 +22,7 @@ less than ``min_slope_span_s`` (or that has fewer than two) gets a constant only
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -30,25 +31,25 @@ from .survey_errors import SurveyError
 __all__ = ["Crossover", "Levelling", "crossovers", "level"]
 
 
-@dataclass(frozen=True)
-class Crossover:
-    """One crossing: ``line`` and ``tie`` are positions in the ``lines`` list given to
-    :func:`crossovers`; ``north``, ``east`` the crossing point (local m); ``difference`` =
-    value on the survey line minus value on the tie line there (nT); ``t_line``, ``t_tie``
-    the times each passed it; ``value_line``, ``value_tie`` the values."""
+class Crossover(NamedTuple):
+    """One crossing. ``line`` and ``tie`` are positions in the ``lines`` list given to
+    :func:`crossovers`; ``north``, ``east`` the crossing point (local m); ``t_line``,
+    ``t_tie`` the times each passed it; ``value_line``, ``value_tie`` the values there;
+    ``difference`` = value on the survey line minus value on the tie line (nT), the last
+    field (``c[-1]``)."""
 
     line: int
     tie: int
     north: float
     east: float
-    difference: float
     t_line: float
     t_tie: float
     value_line: float
     value_tie: float
+    difference: float
 
     def as_dict(self, lines=None) -> dict:
-        out = {"line": self.line, "tie": self.tie, "north_m": round(self.north, 3),
+        out = {"line": int(self.line), "tie": int(self.tie), "north_m": round(self.north, 3),
                "east_m": round(self.east, 3), "difference_nT": round(self.difference, 4),
                "t_line_s": round(self.t_line, 3), "t_tie_s": round(self.t_tie, 3)}
         if lines is not None:
@@ -139,10 +140,10 @@ def crossovers(lines, t, north, east, value, *, search_m=50.0) -> list:
                 continue
             out.append(Crossover(
                 line=li, tie=ti, north=float(point[0]), east=float(point[1]),
-                difference=float(v_line - v_tie),
                 t_line=float(lt[ia] + sk * (lt[ia + 1] - lt[ia])),
                 t_tie=float(tt[ib] + uk * (tt[ib + 1] - tt[ib])),
-                value_line=float(v_line), value_tie=float(v_tie)))
+                value_line=float(v_line), value_tie=float(v_tie),
+                difference=float(v_line - v_tie)))
     return out
 
 
@@ -150,15 +151,17 @@ def crossovers(lines, t, north, east, value, *, search_m=50.0) -> list:
 class Levelling:
     """The result of :func:`level`.
 
-    ``value``: the levelled values (``value - correction`` on the lines' samples, unchanged
+    ``values``: the levelled values (``value - correction`` on the lines' samples, unchanged
     elsewhere); ``correction``: the correction subtracted at each sample (0 off the lines);
     ``offsets``: per position in ``lines``, the constant (nT); ``slopes``: per position, the
     slope (nT/s, 0 for ties, order 0 and constant-only lines); ``rms_before``, ``rms_after``:
     RMS of the crossover differences before and after (nT); ``residuals``: the differences
-    after; ``unlevelled``: positions of survey lines without a crossover.
+    after; ``unlevelled``: positions of survey lines without a crossover;
+    ``crossovers_before``, ``crossovers_after``: the crossovers with their differences before
+    and after levelling (:class:`Crossover`, difference last).
     """
 
-    value: np.ndarray
+    values: np.ndarray
     correction: np.ndarray
     offsets: np.ndarray
     slopes: np.ndarray
@@ -169,6 +172,8 @@ class Levelling:
     n_crossovers: int
     unlevelled: list = field(default_factory=list)
     lines: list = field(default_factory=list)
+    crossovers_before: list = field(default_factory=list)
+    crossovers_after: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         per_line = [{"name": line.name, "kind": line.kind, "offset_nT": round(float(o), 4),
@@ -266,7 +271,12 @@ def level(lines, t, value, crossovers, *, order=0, min_slope_span_s=1.0) -> Leve
         sel = (t >= line.start) & (t <= line.end)
         correction[sel] = offsets[k] + slopes[k] * (t[sel] - middle[k])
     unlevelled = [k for k, line in enumerate(lines) if line.kind == "line" and k not in by_line]
-    return Levelling(value=value - correction, correction=correction, offsets=offsets,
+    after = [c._replace(value_line=c.value_line - offsets[c.line]
+                        - slopes[c.line] * (c.t_line - middle[c.line]),
+                        value_tie=c.value_tie - offsets[c.tie], difference=float(r))
+             for c, r in zip(crossovers, residuals)]
+    return Levelling(values=value - correction, correction=correction, offsets=offsets,
                      slopes=slopes, order=order, rms_before=_rms(d),
                      rms_after=_rms(residuals), residuals=residuals,
-                     n_crossovers=len(crossovers), unlevelled=unlevelled, lines=list(lines))
+                     n_crossovers=len(crossovers), unlevelled=unlevelled, lines=list(lines),
+                     crossovers_before=list(crossovers), crossovers_after=after)

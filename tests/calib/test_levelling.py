@@ -96,11 +96,16 @@ def test_order_0_recovers_the_line_offsets():
     assert result.rms_before > 3.0
     assert result.rms_after < 0.1
     on = which >= 0
-    assert np.max(np.abs(result.value[on] - field(north, east)[on])) < 0.3
-    assert np.all(result.value[~on] == value[~on])
+    assert np.max(np.abs(result.values[on] - field(north, east)[on])) < 0.3
+    assert np.all(result.values[~on] == value[~on])
     report = result.as_dict()
     json.dumps(report)
     assert report["corrections"][0]["name"] == "L0" and report["unlevelled"] == []
+    after = np.array([c[-1] for c in result.crossovers_after])
+    assert after == pytest.approx(result.residuals)
+    assert [c[-1] for c in result.crossovers_before] == [c.difference for c in found]
+    assert all(c.value_line - c.value_tie == pytest.approx(c.difference)
+               for c in result.crossovers_after)
 
 
 def test_order_1_recovers_drifts():
@@ -125,7 +130,7 @@ def test_order_1_recovers_drifts():
     assert result.offsets == pytest.approx(offsets, abs=0.1)
     assert result.rms_after < 0.1 < flat.rms_after
     on = which >= 0
-    assert np.max(np.abs(result.value[on] - field(north, east)[on])) < 0.5
+    assert np.max(np.abs(result.values[on] - field(north, east)[on])) < 0.5
 
 
 def test_a_line_without_crossovers_is_left_alone():
@@ -168,6 +173,6 @@ def test_found_lines_levelled_end_to_end():
     result = level(lines, hover_t, value, crossovers(lines, hover_t, n, e, value))
     assert result.rms_after < 0.1 < 2.0 < result.rms_before
     on = which >= 0
-    level_error = result.value[on] - field(n, e)[on]
+    level_error = result.values[on] - field(n, e)[on]
     tie_mean = np.mean([offsets[k] for k, line in enumerate(lines) if line.kind == "tie"])
     assert np.max(np.abs(level_error - tie_mean)) < 0.3
