@@ -14,9 +14,16 @@ minimised. Adding one constant to every correction leaves the differences alone;
 lines are the reference: their corrections are fixed to a mean of zero, so levelling does not
 move the survey's overall level as the ties measured it. The ties still get constants of their
 own, so that a tie flown at a different diurnal level is not taken as the truth for the lines
-it crosses: the network is adjusted as a whole. A survey line without crossovers is left
-alone (correction 0) and listed in the result. With order 1, a line whose crossovers span
-less than ``min_slope_span_s`` (or that has fewer than two) gets a constant only.
+it crosses: the network is adjusted as a whole. With order 1 one more direction is (nearly)
+invisible: tie constants rising along the lines, ``c_T = g x_T``, cancel against line slopes
+``b_L = g dx/dt`` (exactly at constant speed); the ties' constants are therefore also held
+to no trend along the lines (their least-squares slope against the crossing position is
+zero). A survey line without crossovers is left alone (correction 0) and listed in the
+result. With order 1, a line whose crossovers span less than ``min_slope_span_s`` (or that
+has fewer than two) gets a constant only.
+
+The constraints are exact (the least squares is solved in their null space), not weighted
+equations.
 """
 
 from __future__ import annotations
