@@ -45,6 +45,9 @@ MAX_FIX_GAP_S = 5.0
 IGRF_STEP_S = 1.0
 #: The dates IGRF-14 (ppigrf's coefficients) defines (as calib.pipeline).
 IGRF_DATES = (_dt.date(1900, 1, 1), _dt.date(2030, 1, 1))
+#: Share (%) of a stretch's samples whose course must lie within the tolerance of its mean
+#: course (the rest may be GPS noise: a single noisy fix swings the course at low speed).
+STEADY_PERCENTILE = 90.0
 #: GPS altitudes (m) at which IGRF is evaluated; outside, the sample's field is NaN.
 ALTITUDE_RANGE_M = (-1_000.0, 100_000.0)
 
@@ -339,8 +342,9 @@ def find_lines(t, north, east, *, min_length_m=50.0, peak_fraction=0.5, min_spee
        50 %) of the run's peak speed are kept, the longest contiguous stretch of them. A
        minimum-jerk move is cut where it accelerates: it keeps the middle 54 % of the move's
        time and 83 % of its length.
-    3. **Straight**: the kept stretch's course (axial mean) may differ from every sample's
-       course by at most ``course_tolerance_deg``, and the stretch must be at least
+    3. **Straight**: the kept stretch's course (axial mean) may differ from its samples'
+       courses by at most ``course_tolerance_deg`` (90 % of them: :data:`STEADY_PERCENTILE`),
+       and the stretch must be at least
        ``min_length_m`` (default 50 m) long (start to end).
     4. **Kinds**: stretches are grouped by axis (course modulo 180°, within
        ``course_tolerance_deg``); the axis with the most stretches holds the survey lines,
@@ -409,7 +413,7 @@ def _steady(tv, nv, ev, speed, course, a, b, peak_fraction, tolerance, min_lengt
     if hi - lo < 2:
         return None
     axis = _axial_mean_deg(course[lo:hi], speed[lo:hi])
-    if np.max(_axial_diff_deg(course[lo:hi], axis)) > tolerance:
+    if np.percentile(_axial_diff_deg(course[lo:hi], axis), STEADY_PERCENTILE) > tolerance:
         return None
     length = float(np.hypot(nv[hi - 1] - nv[lo], ev[hi - 1] - ev[lo]))
     if length < min_length:

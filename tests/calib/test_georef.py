@@ -229,6 +229,23 @@ def test_find_lines_keeps_the_steady_middle_of_each_line_and_tie(course):
     assert lines[0].length_m == pytest.approx(0.833 * 300, abs=1.5)
 
 
+@pytest.mark.parametrize("sigma", [0.5, 1.0])
+def test_find_lines_through_gps_noise(sigma):
+    # white noise of sigma metres on every 1 Hz fix (real GNSS noise is slower and smoother)
+    t, north, east, moves = survey_track(course_deg=30.0)
+    whole = np.round(t) == t
+    rng = np.random.default_rng(7)
+    n = np.interp(t, t[whole], north[whole] + sigma * rng.standard_normal(whole.sum()))
+    e = np.interp(t, t[whole], east[whole] + sigma * rng.standard_normal(whole.sum()))
+    lines = find_lines(t, n, e)
+    want = [m for m in moves if m[0] in ("line", "tie")]
+    assert [line.kind for line in lines] == [m[0] for m in want]
+    for line, (_, start, end) in zip(lines, want):
+        cut_start, cut_end = expected_cut(start, end)
+        assert line.start == pytest.approx(cut_start, abs=3.0)
+        assert line.end == pytest.approx(cut_end, abs=3.0)
+
+
 def test_find_lines_never_takes_the_box_or_the_steps():
     # long, fast steps (60 m in 4 s: 28 m/s peak) and no ties: the steps are the only
     # stretches across the lines and cross none of them
