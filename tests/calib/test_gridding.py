@@ -354,6 +354,8 @@ def test_bad_settings(data, kwargs, match):
 def test_bad_shapes_and_places(spline_grid):
     with pytest.raises(SurveyError, match="1-D of one length"):
         gridding.grid_anomaly(np.zeros(30), np.zeros(30), np.zeros(29))
+    with pytest.raises(SurveyError, match="too few distinct positions"):
+        gridding.grid_anomaly(np.zeros(30), np.zeros(30), np.ones(30))
     with pytest.raises(SurveyError, match="no UTM zone"):
         gridding.to_utm(spline_grid, 85.0, 0.0)
     with pytest.raises(SurveyError, match="every node is masked"):
