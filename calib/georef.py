@@ -328,7 +328,8 @@ def _segments_cross(p1, p2, q1, q2):
 
 def find_lines(t, north, east, *, min_length_m=50.0, peak_fraction=0.5, min_speed_m_s=1.0,
                max_turn_rate_deg_s=5.0, course_tolerance_deg=10.0, min_fraction=0.5,
-               min_tie_crossings=2, window_s=1.5, max_sample_gap_s=2.0) -> list:
+               min_tie_crossings=2, window_s=1.5, max_sample_gap_s=2.0,
+               max_merge_gap_s=30.0) -> list:
     """The survey lines and tie lines in a track (times ``t`` in s, local metres).
 
     The rule, step by step:
@@ -346,7 +347,12 @@ def find_lines(t, north, east, *, min_length_m=50.0, peak_fraction=0.5, min_spee
        courses by at most ``course_tolerance_deg`` (90 % of them: :data:`STEADY_PERCENTILE`),
        and the stretch must be at least
        ``min_length_m`` (default 50 m) long (start to end).
-    4. **Kinds**: stretches are grouped by axis (course modulo 180°, within
+    4. **Gaps**: a stretch broken by a gap in the positions (a GPS outage) is one again when
+       the next stretch follows within ``max_merge_gap_s``, on the same course (within
+       ``course_tolerance_deg``), ahead and on its line (its start at most
+       ``course_tolerance_deg`` off the first part's course as seen from its end). Each part
+       was cut at half its own peak speed.
+    5. **Kinds**: stretches are grouped by axis (course modulo 180°, within
        ``course_tolerance_deg``); the axis with the most stretches holds the survey lines,
        the perpendicular one (±``course_tolerance_deg``) the tie lines; other stretches are
        dropped. In each group a stretch shorter than ``min_fraction`` of the group's longest
@@ -390,6 +396,7 @@ def find_lines(t, north, east, *, min_length_m=50.0, peak_fraction=0.5, min_spee
                               course_tolerance_deg, min_length_m)
                 if seg is not None:
                     stretches.append(seg)
+    stretches = _merge_gaps(stretches, max_merge_gap_s, course_tolerance_deg)
     lines = _classify(stretches, course_tolerance_deg, min_fraction, min_tie_crossings)
     n_lines = sum(1 for line in lines if line.kind == "line")
     if n_lines < 2:
@@ -423,6 +430,30 @@ def _steady(tv, nv, ev, speed, course, a, b, peak_fraction, tolerance, min_lengt
             "axis": axis, "length": length,
             "speed": length / max(float(tv[hi - 1] - tv[lo]), 1e-9),
             "p1": np.array([nv[lo], ev[lo]]), "p2": np.array([nv[hi - 1], ev[hi - 1]])}
+
+
+def _merge_gaps(stretches, max_gap_s, tolerance):
+    """Consecutive stretches joined where a position gap broke one line (step 4 of
+    :func:`find_lines`)."""
+    out = []
+    for s in stretches:
+        if out:
+            prev = out[-1]
+            jump = s["p1"] - prev["p2"]
+            bearing = np.degrees(np.arctan2(jump[1], jump[0]))
+            turn = abs((s["course"] - prev["course"] + 180) % 360 - 180)
+            off = abs((bearing - prev["course"] + 180) % 360 - 180)
+            if (s["start"] - prev["end"] <= max_gap_s and turn <= tolerance
+                    and np.hypot(*jump) > 0 and off <= tolerance):
+                p1, p2 = prev["p1"], s["p2"]
+                length = float(np.hypot(*(p2 - p1)))
+                course = float(np.degrees(np.arctan2(*(p2 - p1)[::-1])) % 360)
+                out[-1] = {**prev, "end": s["end"], "p2": p2, "length": length,
+                           "course": course, "axis": course % 180,
+                           "speed": length / max(s["end"] - prev["start"], 1e-9)}
+                continue
+        out.append(s)
+    return out
 
 
 def _classify(stretches, tolerance, min_fraction, min_tie_crossings):

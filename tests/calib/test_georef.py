@@ -246,6 +246,22 @@ def test_find_lines_through_gps_noise(sigma):
         assert line.end == pytest.approx(cut_end, abs=3.0)
 
 
+def test_a_line_broken_by_a_gps_outage_is_one_line():
+    t, north, east, moves = survey_track(course_deg=30.0)
+    n, e = as_gga_track(t, north, east)
+    start, end = moves[4][1:]                          # the second line
+    outage = (t > start + 25) & (t < start + 33)       # 8 s without a position mid-line
+    n[outage] = e[outage] = np.nan
+    lines = find_lines(t, n, e)
+    assert [line.kind for line in lines].count("line") == 6
+    cut_start, cut_end = expected_cut(start, end)
+    assert lines[1].start == pytest.approx(cut_start, abs=0.5)
+    assert lines[1].end == pytest.approx(cut_end, abs=0.5)
+    # each part is cut at half its own peak: the first part's peak lies before the move's
+    assert lines[1].length_m == pytest.approx(0.833 * 300, abs=4.0)
+    assert lines[1].course_deg == pytest.approx(210.0, abs=1.0)
+
+
 def test_find_lines_never_takes_the_box_or_the_steps():
     # long, fast steps (60 m in 4 s: 28 m/s peak) and no ties: the steps are the only
     # stretches across the lines and cross none of them
