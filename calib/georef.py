@@ -353,10 +353,11 @@ def find_lines(t, north, east, *, min_length_m=50.0, peak_fraction=0.5, min_spee
        ``course_tolerance_deg`` off the first part's course as seen from its end). Each part
        was cut at half its own peak speed.
     5. **Kinds**: stretches are grouped by axis (course modulo 180°, within
-       ``course_tolerance_deg``); the axis with the most stretches holds the survey lines,
-       the perpendicular one (±``course_tolerance_deg``) the tie lines; other stretches are
-       dropped. In each group a stretch shorter than ``min_fraction`` of the group's longest
-       is a sideways step or a transit, not a line, and is dropped. A tie line must cross at
+       ``course_tolerance_deg``); in each group a stretch shorter than ``min_fraction`` of
+       the group's longest is a sideways step or a transit, not a line, and is dropped. The
+       group with the most stretches left holds the survey lines (on a draw, the group
+       flown first), the perpendicular one (±``course_tolerance_deg``) the tie lines; other
+       stretches are dropped. A tie line must cross at
        least ``min_tie_crossings`` survey lines (the steps between lines cross none).
 
     Returns a list of :class:`Line` in flight order, each kind numbered from 0. Raises
@@ -461,18 +462,24 @@ def _classify(stretches, tolerance, min_fraction, min_tie_crossings):
     if not stretches:
         return []
     axes = np.array([s["axis"] for s in stretches])
-    counts = [int(np.sum(_axial_diff_deg(axes, a) <= tolerance)) for a in axes]
-    best = int(np.argmax(counts))               # the first stretch of the biggest group
-    members = _axial_diff_deg(axes, axes[best]) <= tolerance
-    line_axis = _axial_mean_deg(axes[members])
+    lengths = np.array([s["length"] for s in stretches])
+
+    def members(axis):
+        """The stretches on ``axis`` that are not steps or transits (short for it)."""
+        near = _axial_diff_deg(axes, axis) <= tolerance
+        if not np.any(near):
+            return near
+        return near & (lengths >= min_fraction * np.max(lengths[near]))
+
+    # the biggest group of lines (counted without its short stretches: the steps between
+    # lines can outnumber the ties across them); on a draw, the group flown first
+    counts = [int(np.count_nonzero(members(a))) for a in axes]
+    best = int(np.argmax(counts))
+    line_axis = _axial_mean_deg(axes[members(axes[best])])
     tie_axis = (line_axis + 90) % 180
 
     def group(axis):
-        chosen = [s for s in stretches if _axial_diff_deg(s["axis"], axis) <= tolerance]
-        if not chosen:
-            return []
-        longest = max(s["length"] for s in chosen)
-        return [s for s in chosen if s["length"] >= min_fraction * longest]
+        return [s for s, keep in zip(stretches, members(axis)) if keep]
 
     survey = group(line_axis)
     ties = [s for s in group(tie_axis)

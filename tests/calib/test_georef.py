@@ -273,6 +273,16 @@ def test_find_lines_never_takes_the_box_or_the_steps():
     assert all(line.start > box_end for line in lines)
 
 
+def test_steps_outnumbering_the_ties_do_not_make_the_ties_lines():
+    # five lines 100 m apart: four 100 m steps and three ties across, seven stretches
+    # across the lines against five along them
+    t, north, east, _ = survey_track(lines=5, spacing=100.0, step_s=15.0, ties=3)
+    n, e = as_gga_track(t, north, east)
+    lines = find_lines(t, n, e, min_length_m=65.0)
+    assert [line.kind for line in lines] == ["line"] * 5 + ["tie"] * 3
+    assert all(abs((line.course_deg - 30.0 + 90) % 180 - 90) < 1 for line in lines[:5])
+
+
 def test_find_lines_drops_transits_between_ties():
     # transits along the lines between ties are 75 m: shorter than half the lines
     t, north, east, _ = survey_track(ties=3)
