@@ -19,7 +19,9 @@ Order of work (each step seeded from the scenario's seed, one generator per purp
    no two kept frames of different channels end within MIN_END_GAP_S); a frame with bytes
    inside a baud-error window is split there, the bytes inside sent at the line's actual
    rate, with two nominal bit times of idle after them;
-6. the truth (:mod:`.truth`).
+6. the truth (:mod:`.truth`); with survey features, ``truth["survey"]``
+   (:func:`.geophysics.survey_truth`) and the base station's record (``base.csv``, its
+   noise from a generator of its own: the four above draw as without it).
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from .captures import load_capture, shared_data_dir
 from .system import UART_FRAME_BITS, SystemScenario, Timeline
 from . import errors as _errors
 from .config import CHANNEL_NAMES
-from .flight import make_flight
+from .flight import make_flight, survey_seconds
 
 __all__ = ["Stimulus", "Item", "build", "NOISE_BYTES", "KEEPABLE"]
 
@@ -62,6 +64,8 @@ _IDLE_AFTER_OFF_BITS = 2
 _HORIZON_MARGIN_S = 3.0 + _PRESS_SEARCH_S
 #: A baud error up to this size leaves every character intact (centre sampling at 16x).
 SAFE_BAUD_ERROR = 0.02
+#: Second entropy word of the survey's own generators (beside the seed).
+_SURVEY_ENTROPY = 0x5355_5256
 
 
 @dataclass
@@ -90,13 +94,16 @@ class Stimulus:
     track: object = None
     items: list = field(default_factory=list)      # the frames as sent (after faults)
     placed: list = field(default_factory=list)     # per burst: index of its baud fault or None
+    files: dict = field(default_factory=dict)      # more files beside truth.json: name -> bytes
 
     def write_truth(self, folder):
-        """Write ``truth.json`` and ``attitude.csv`` into ``folder`` (created if needed);
-        returns the truth file's path."""
+        """Write ``truth.json`` and ``attitude.csv`` (and ``base.csv`` when the scenario has
+        a base station) into ``folder`` (created if needed); returns the truth file's path."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         (folder / self.truth["flight"]["attitude_csv"]).write_bytes(self.flight.attitude_csv())
+        for name, data in self.files.items():
+            (folder / name).write_bytes(data)
         path = folder / "truth.json"
         path.write_text(json.dumps(self.truth, indent=1) + "\n", encoding="utf-8")
         return path
@@ -190,7 +197,8 @@ def _mag_items(flight):
 def _cesium_items(scenario, track, rng, horizon):
     cfg = scenario.channels["cesium"]
     t = np.arange(cfg.first_s, horizon, 1.0 / cfg.rate_hz)
-    field_nt = track.total(t) + rng.normal(scale=cfg.noise_nT, size=t.size)
+    clean = track.total(t) if track.geo is None else track.geo.cesium(t)
+    field_nt = clean + rng.normal(scale=cfg.noise_nT, size=t.size)
     signal = np.clip(cfg.signal + rng.integers(-20, 21, size=t.size), 0, 9999)
     return [Item(float(tk), 2, sentences.cesium(float(f), int(s)), "cesium", seq=k)
             for k, (tk, f, s) in enumerate(zip(t, field_nt, signal))]
@@ -345,6 +353,8 @@ def build(scenario):
                 + len(f.calibration.headings_deg) * f.calibration.seconds
                 + (survey.turn_s * survey.legs + leg_s * survey.legs if survey.legs else 0.0)
                 + f.landing.seconds)
+    if survey.legs and survey.tie_lines:
+        flight_s += survey_seconds(survey)[1]
     horizon = flight_s + rec.stop_after_landing_s + rec.end_after_stop_s + _HORIZON_MARGIN_S
     flight, track = make_flight(scenario, errors, rng_flight, horizon)
 
@@ -441,7 +451,25 @@ def build(scenario):
     stim = Stimulus(scenario=scenario, system=system, flight=flight, truth={}, card=card,
                     track=track, items=all_items, placed=placed)
     stim.truth = make_truth(stim, fault_records, withheld, errors)
+    if scenario.survey_on:
+        _add_survey(stim)
     return stim
+
+
+def _add_survey(stim):
+    """``truth["survey"]`` and, with a base station, ``base.csv`` (its own generator)."""
+    from .geophysics import base_station_csv, survey_truth
+    scenario, track = stim.scenario, stim.track
+    lines = [line for line in track.lines if line[2] < stim.system.until]
+    survey = (dict(track.geo.survey, lines=survey_truth(scenario, lines)["lines"])
+              if track.geo is not None else survey_truth(scenario, lines))
+    stim.truth["survey"] = survey
+    if scenario.diurnal.base_station:
+        # Not from the scenario's four generators: their draws stay as without the survey.
+        rng_base, = (np.random.default_rng(s) for s in
+                     np.random.SeedSequence([scenario.seed, _SURVEY_ENTROPY]).spawn(1))
+        stim.files[survey["diurnal"]["base_station"]] = base_station_csv(
+            survey, scenario.start, stim.system.until, rng_base)
 
 
 def _check_quiet(scenario, system):

@@ -18,9 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 
-__all__ = ["ScenarioError", "SurveyScenario", "Fault", "SCHEMA", "FAULT_SCHEMA",
-           "CHANNEL_NAMES", "FAULT_KINDS", "default_scenario_path", "load_scenario",
-           "loads_scenario", "preset_names"]
+__all__ = ["ScenarioError", "SurveyScenario", "Fault", "Dipole", "SCHEMA", "FAULT_SCHEMA",
+           "DIPOLE_SCHEMA", "CHANNEL_NAMES", "FAULT_KINDS", "TL_TERMS",
+           "default_scenario_path", "load_scenario", "loads_scenario", "scenario_from_dict",
+           "preset_names"]
 
 #: Channel names, in the logger's ``uart_rx`` order (FLIGHT_CHANNELS).
 CHANNEL_NAMES = ("mag", "gps", "cesium")
@@ -29,6 +30,8 @@ FAULT_KINDS = ("noise_burst", "dropped_bytes", "bad_checksum", "baud_error", "gp
 TIMINGS = ("rate", "groups", "stream")
 #: How far a baud-error fault may take a line (uart_line.encode's own limit).
 MAX_BAUD_ERROR = 0.25
+#: Tolles–Lawson terms of ``[interference] tl_coefficients`` (geophysics.TL_TERM_NAMES).
+TL_TERMS = 18
 
 
 class ScenarioError(ValueError):
@@ -106,6 +109,7 @@ SCHEMA = {
         "spacing_m": Key("float", 20.0, _at_least(0.0)),
         "turn_s": Key("float", 6.0, _positive()),
         "drag_per_s": Key("float", 0.1, _at_least(0.0)),
+        "tie_lines": Key("int", 0, _at_least(0)),
     },
     "flight.landing": {
         "seconds": Key("float", 10.0, _positive()),
@@ -154,6 +158,29 @@ SCHEMA = {
         "noise_nT": Key("float", 5.0, _at_least(0.0)),
         "mounting_deg": Key("floats", [0.0, 0.0, 0.0]),
     },
+    "interference": {
+        "tl_coefficients": Key("floats", [0.0] * TL_TERMS),
+        "vector_eddy_s": Key("floats", [0.0] * 9),
+        "heading_error_nT": Key("float", 0.0),
+    },
+    "diurnal": {
+        "amplitude_nT": Key("float", 0.0, _at_least(0.0)),
+        "pulsation_nT": Key("float", 0.0, _at_least(0.0)),
+        "pulsation_period_s": Key("float", 600.0, _positive()),
+        "base_station": Key("bool", False),
+        "base_rate_hz": Key("float", 1.0, _within(0.01, 100.0)),
+        "base_noise_nT": Key("float", 0.01, _at_least(0.0)),
+    },
+}
+
+#: Keys of a ``[[anomaly.dipole]]`` table (None: required; NaN: optional, absent = induced).
+DIPOLE_SCHEMA = {
+    "north_m": Key("float", None),
+    "east_m": Key("float", None),
+    "depth_m": Key("float", None, _positive()),
+    "moment_Am2": Key("float", None, _positive()),
+    "inclination_deg": Key("float", math.nan, _within(-90.0, 90.0)),
+    "declination_deg": Key("float", math.nan, _within(-360.0, 360.0)),
 }
 
 #: Keys of each fault kind (``[[faults.<kind>]]`` tables); None: required.
@@ -197,6 +224,20 @@ class Fault:
         return f"[[faults.{self.kind}]] #{self.index}"
 
 
+@dataclass(frozen=True)
+class Dipole:
+    """One ``[[anomaly.dipole]]`` table (``index`` from 1): position from the site (m),
+    depth below its ground (m), moment (A·m²), and the remanent direction (degrees) or
+    None for both angles (induced: along the IGRF at the site)."""
+    index: int
+    north_m: float
+    east_m: float
+    depth_m: float
+    moment_Am2: float
+    inclination_deg: float | None = None
+    declination_deg: float | None = None
+
+
 @dataclass
 class SurveyScenario:
     """A validated scenario: one namespace per table (``site``, ``recording``, ``gps``,
@@ -217,6 +258,25 @@ class SurveyScenario:
     errors: SimpleNamespace
     faults: list
     folder: Path | None = None        # where relative capture paths start
+    dipoles: list = field(default_factory=list)
+    interference: SimpleNamespace = None
+    diurnal: SimpleNamespace = None
+
+    @property
+    def geophysics_on(self):
+        """Whether dipoles, interference or a diurnal field change the sensors' field."""
+        inter, di = self.interference, self.diurnal
+        return bool(self.dipoles
+                    or (inter is not None and (any(inter.tl_coefficients)
+                                               or any(inter.vector_eddy_s)
+                                               or inter.heading_error_nT))
+                    or (di is not None and (di.amplitude_nT or di.pulsation_nT
+                                            or di.base_station)))
+
+    @property
+    def survey_on(self):
+        """Whether the truth gets a ``survey`` part (tie lines or any geophysics)."""
+        return self.geophysics_on or (self.flight.survey.tie_lines > 0)
 
     def build(self):
         """The scenario's sensor streams, button presses, flight and truth (seeded)."""
@@ -313,6 +373,17 @@ def _split_tables(source, data):
                     raise ScenarioError(f"{source}: faults.{kind} must be an array of tables "
                                         f"([[faults.{kind}]]), not {_describe(entries)}")
                 faults[kind] = entries
+        elif top == "anomaly":
+            if not isinstance(value, dict):
+                raise ScenarioError(f"{source}: [anomaly] must hold [[anomaly.dipole]] tables")
+            for kind, entries in value.items():
+                if kind != "dipole":
+                    raise ScenarioError(f"{source}: unknown table [anomaly.{kind}] (known: "
+                                        "[[anomaly.dipole]])")
+                if not isinstance(entries, list):
+                    raise ScenarioError(f"{source}: anomaly.dipole must be an array of tables "
+                                        f"([[anomaly.dipole]]), not {_describe(entries)}")
+                faults["anomaly.dipole"] = entries
         elif top in ("flight", "channels"):
             if not isinstance(value, dict):
                 raise ScenarioError(f"{source}: [{top}] must be a table")
@@ -325,7 +396,7 @@ def _split_tables(source, data):
         elif top in SCHEMA:
             tables[top] = value
         else:
-            known = sorted({k.split(".")[0] for k in SCHEMA} | {"faults"})
+            known = sorted({k.split(".")[0] for k in SCHEMA} | {"faults", "anomaly"})
             raise ScenarioError(f"{source}: unknown table [{top}] (known: {', '.join(known)})")
     return tables, faults
 
@@ -349,6 +420,26 @@ def scenario_from_dict(data, *, source="<scenario>", folder=None):
                                     "lines have no checksum), not 'cesium'")
             faults.append(Fault(kind, index, channel, fields.pop("start_s"),
                                 fields.pop("end_s"), fields))
+    dipoles = []
+    for index, entry in enumerate(fault_lists.get("anomaly.dipole", []), 1):
+        where = f"[[anomaly.dipole]] #{index}"
+        fields = _table(source, where, DIPOLE_SCHEMA, entry)
+        angles = [fields[k] for k in ("inclination_deg", "declination_deg")]
+        if sum(math.isnan(a) for a in angles) == 1:
+            raise ScenarioError(f"{source}: {where} needs both inclination_deg and "
+                                "declination_deg (remanent) or neither (induced)")
+        if math.isnan(angles[0]):
+            fields["inclination_deg"] = fields["declination_deg"] = None
+        dipoles.append(Dipole(index=index, **fields))
+    inter = values["interference"]
+    for name, size in (("tl_coefficients", TL_TERMS), ("vector_eddy_s", 9)):
+        if len(inter[name]) != size:
+            raise ScenarioError(f"{source}: [interference] {name} must be {size} numbers, "
+                                f"not {len(inter[name])}")
+    survey = values["flight.survey"]
+    if survey["tie_lines"] and (survey["legs"] < 2 or survey["spacing_m"] <= 0):
+        raise ScenarioError(f"{source}: [flight.survey] tie_lines needs legs >= 2 and "
+                            f"spacing_m > 0 (lines to cross), not {survey['tie_lines']!r}")
     scenario = values["scenario"]
     calibration = values["flight.calibration"]
     if any(not -360.0 <= h <= 360.0 for h in calibration["headings_deg"]):
@@ -362,7 +453,7 @@ def scenario_from_dict(data, *, source="<scenario>", folder=None):
     if len(talker) != 2 or not talker.isascii() or not talker.isupper():
         raise ScenarioError(f"{source}: [gps] talker must be two upper-case letters, not "
                             f"{talker!r}")
-    flight = SimpleNamespace(**{name.split(".")[1]: SimpleNamespace(**values[name])
+    flight = SimpleNamespace(**{name.split(".", 1)[1]: SimpleNamespace(**values[name])
                                 for name in SCHEMA if name.startswith("flight.")})
     channels = {name: SimpleNamespace(**values[f"channels.{name}"]) for name in CHANNEL_NAMES}
     return SurveyScenario(
@@ -371,7 +462,8 @@ def scenario_from_dict(data, *, source="<scenario>", folder=None):
         site=SimpleNamespace(**values["site"]), recording=SimpleNamespace(**values["recording"]),
         flight=flight, gps=SimpleNamespace(**values["gps"]), channels=channels,
         errors=SimpleNamespace(**errors), faults=faults,
-        folder=None if folder is None else Path(folder))
+        folder=None if folder is None else Path(folder), dipoles=dipoles,
+        interference=SimpleNamespace(**inter), diurnal=SimpleNamespace(**values["diurnal"]))
 
 
 def loads_scenario(text, *, source="<scenario>", folder=None):

@@ -5,8 +5,13 @@ Phases (seconds from power-up, t = 0): ``ground`` (engines off; the GPS acquires
 ``takeoff`` (vertical climb to ``height_m``), ``calibration`` (hovering: on each of the
 headings, a turn onto it, then rolls, pitches and yaws, each for a third of what is left),
 ``survey`` (a turn onto the first line, then ``legs`` straight lines flown back and forth,
-each joined to the next by a hovering turn and a sideways step of ``spacing_m``),
-``landing`` (vertical descent) and ``ground`` again.
+each joined to the next by a hovering turn and a sideways step of ``spacing_m``), ``tie``
+(with ``tie_lines`` > 0: tie lines perpendicular to the lines, evenly spaced along them at
+``(j + 1/2) / tie_lines`` of their length, each crossing all lines with ``spacing_m`` of
+overrun on each side, flown back and forth, heading along the tie line; a min-jerk move at
+the same peak speed, heading already on the tie line, from the last line's end to the first
+tie line and from each tie line's end to the next), ``landing`` (vertical descent) and
+``ground`` again. :attr:`Track.lines` lists each line's straight part (the move along it).
 
 Position: the commanded path, minimum-jerk on each move (climb, line, step, descent), so
 velocity and acceleration are smooth. The calibration manoeuvres are flown in place (the
@@ -22,19 +27,21 @@ calibration heading). Each axis follows its command through a second-order respo
 correlation) is added while airborne (half of it on the heading).
 
 Earth field: IGRF (ppigrf) at the position and altitude once a second, on the scenario's
-date, interpolated to the magnetometer samples and rotated into the body frame.
+date, interpolated to the magnetometer samples and rotated into the body frame. With
+dipoles, interference or a diurnal field (:mod:`.geophysics`) the field is
+:class:`~.geophysics.SurveyField`'s, the anomaly evaluated at each sample's own position.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
 from .scenario import Flight, _field_ned, _rotation, _smooth_noise
 
-__all__ = ["Track", "make_flight", "DT", "GRAVITY"]
+__all__ = ["Track", "make_flight", "survey_seconds", "DT", "GRAVITY"]
 
 #: Integration step of the attitude dynamics, seconds.
 DT = 0.01
@@ -61,6 +68,9 @@ class Track:
     ground_alt: float
     field_t: np.ndarray          # the IGRF grid (1 Hz)
     field_ned: np.ndarray        # (n, 3) nT
+    lines: list = field(default_factory=list)   # [(kind "line"|"tie", index, start, end)]
+    attitude: np.ndarray | None = None          # (n, 3) roll, pitch, heading (radians)
+    geo: object = None           # geophysics.SurveyField when the field has survey parts
 
     def at(self, t, values):
         return np.interp(t, self.t, values)
@@ -99,6 +109,7 @@ class _Plan:
         self.roll_extra = np.zeros(n)
         self.pitch_extra = np.zeros(n)
         self.phases = []
+        self.lines = []
         self.now = 0.0
         self.pos = np.zeros(3)          # north, east, up at `now`
         self.head = heading0            # unwrapped
@@ -146,6 +157,37 @@ class _Plan:
         self._hold_after()
 
 
+def _tie_moves(survey):
+    """The tie lines' moves from the last line's end, in the lines' frame (along the first
+    line's course, to its right): [(seconds, (d_along, d_side), heading offset (radians
+    from the course), tie index or None for a move between tie lines)]."""
+    length, spacing, speed = survey.leg_length_m, survey.spacing_m, survey.speed_m_s
+    width = (survey.legs - 1) * spacing
+    along, side = (length if survey.legs % 2 else 0.0), width
+    moves = []
+    for j in range(survey.tie_lines):
+        towards = -1.0 if j % 2 == 0 else 1.0             # first tie back across the lines
+        start = (length * (j + 0.5) / survey.tie_lines,
+                 width + spacing if towards < 0 else -spacing)
+        delta = (start[0] - along, start[1] - side)
+        seconds = max(survey.turn_s, 1.875 * float(np.hypot(*delta)) / speed)
+        moves.append((seconds, delta, towards * np.pi / 2, None))
+        tie = towards * (width + 2 * spacing)
+        moves.append((1.875 * abs(tie) / speed, (0.0, tie), towards * np.pi / 2, j))
+        along, side = start[0], start[1] + tie
+    return moves
+
+
+def survey_seconds(survey):
+    """The survey phase's and the tie phase's seconds (0 for none)."""
+    if not survey.legs:
+        return 0.0, 0.0
+    leg_s = 1.875 * survey.leg_length_m / survey.speed_m_s
+    lines = survey.turn_s * survey.legs + leg_s * survey.legs
+    ties = sum(m[0] for m in _tie_moves(survey)) if survey.tie_lines else 0.0
+    return lines, ties
+
+
 def make_flight(scenario, errors, rng, horizon):
     """The flight of ``scenario`` from t = 0 to ``horizon`` s: (:class:`Flight` sampled at
     the magnetometer's rate, :class:`Track`). ``rng`` draws the turbulence and the sensor
@@ -179,8 +221,10 @@ def make_flight(scenario, errors, rng, horizon):
         plan.move(survey.turn_s, (0.0, 0.0, 0.0), heading=course)
         for leg in range(survey.legs):
             c = course + np.pi * (leg % 2)
+            start = plan.now
             plan.move(leg_s, (survey.leg_length_m * np.cos(c),
                               survey.leg_length_m * np.sin(c), 0.0), heading=c)
+            plan.lines.append(("line", leg, start, plan.now))
             if leg + 1 < survey.legs:
                 side = course + np.pi / 2
                 plan.move(survey.turn_s, (survey.spacing_m * np.cos(side),
@@ -188,6 +232,18 @@ def make_flight(scenario, errors, rng, horizon):
                           heading=c + np.pi)
     if survey.legs:
         phase("survey", lines)
+
+    def ties():
+        course = np.radians(survey.course_deg)
+        for seconds, (d_along, d_side), offset, index in _tie_moves(survey):
+            start = plan.now
+            plan.move(seconds, (d_along * np.cos(course) - d_side * np.sin(course),
+                                d_along * np.sin(course) + d_side * np.cos(course), 0.0),
+                      heading=course + offset)
+            if index is not None:
+                plan.lines.append(("tie", index, start, plan.now))
+    if survey.legs and survey.tie_lines:
+        phase("tie", ties)
     phase("landing", lambda: plan.move(f.landing.seconds, (0.0, 0.0, -f.takeoff.height_m)))
     flight_end = plan.now
     if flight_end >= horizon:
@@ -222,15 +278,23 @@ def make_flight(scenario, errors, rng, horizon):
     track = Track(t=t, north=plan.north, east=plan.east, up=plan.up, v_north=v_n, v_east=v_e,
                   phases=plan.phases, flight_end=flight_end, takeoff=takeoff,
                   lat=site.lat_deg, lon=site.lon_deg, ground_alt=site.ground_alt_m,
-                  field_t=field_t, field_ned=field_ned)
+                  field_t=field_t, field_ned=field_ned, lines=plan.lines, attitude=attitude)
 
     ts = np.arange(mag.first_s, horizon, 1.0 / mag.rate_hz)
     roll, pitch, heading = (np.interp(ts, t, attitude[:, k]) for k in range(3))
-    ned = np.column_stack([np.interp(ts, field_t, field_ned[:, k]) for k in range(3)])
-    body = np.einsum("nji,nj->ni", _rotation(heading, pitch, roll), ned)
+    if scenario.geophysics_on:
+        from .geophysics import SurveyField, survey_truth
+        track.geo = SurveyField(survey_truth(scenario, plan.lines), track, attitude, DT)
+        body, total = track.geo.body(ts, roll, pitch, heading)
+        sensed = body + track.geo.vector_eddy(ts)
+    else:
+        ned = np.column_stack([np.interp(ts, field_t, field_ned[:, k]) for k in range(3)])
+        body = np.einsum("nji,nj->ni", _rotation(heading, pitch, roll), ned)
+        total = np.linalg.norm(ned, axis=1)
+        sensed = body
     vn, ve = np.interp(ts, t, v_n), np.interp(ts, t, v_e)
     flight = Flight(t=ts, roll=roll, pitch=pitch, heading=heading, b_earth=body,
-                    b_meas=errors.apply(body, rng), total=np.linalg.norm(ned, axis=1),
+                    b_meas=errors.apply(sensed, rng), total=total,
                     lat=site.lat_deg, lon=site.lon_deg, altitude_m=site.ground_alt_m,
                     start=when, errors=errors,
                     north_m=np.interp(ts, t, plan.north), east_m=np.interp(ts, t, plan.east),

@@ -25,8 +25,8 @@ def _load(tmp_path, text):
     ("[site]\nlatitude = 3\n",
      "scenario.toml: [site] unknown key 'latitude' (known: lat_deg, lon_deg, ground_alt_m)"),
     ("[sitex]\na = 1\n",
-     "scenario.toml: unknown table [sitex] (known: channels, errors, faults, flight, gps, "
-     "recording, scenario, site)"),
+     "scenario.toml: unknown table [sitex] (known: anomaly, channels, diurnal, errors, "
+     "faults, flight, gps, interference, recording, scenario, site)"),
     ("[flight.hover]\nseconds = 3\n",
      "scenario.toml: unknown table [flight.hover] (known: flight.ground, flight.takeoff, "
      "flight.calibration, flight.survey, flight.landing, flight.dynamics)"),
