@@ -220,17 +220,26 @@ def bandpass(x, rate_hz, band, order=4):
     x = np.asarray(x, dtype=float)
     lo, hi = _check_band(band, float(rate_hz), "bandpass")
     sos = signal.butter(order, (lo, hi), btype="bandpass", fs=float(rate_hz), output="sos")
-    padlen = 3 * (2 * len(sos) + 1)
-    if x.shape[0] <= padlen:
+    if x.shape[0] < _min_piece(order):
         raise SurveyError(f"bandpass: too few samples ({x.shape[0]}) for an order-{order} "
-                          f"filter (more than {padlen} needed)")
+                          f"filter (at least {_min_piece(order)})")
     return signal.sosfiltfilt(sos, x, axis=0)
 
 
+def _min_piece(order=4):
+    """Least samples of a piece the order-``order`` band-pass can filter (its padding)."""
+    return 3 * (2 * order + 1) + 1
+
+
+def _long_pieces(t, rate_hz, order=4):
+    return [sl for sl in _pieces(t, rate_hz) if sl.stop - sl.start >= _min_piece(order)]
+
+
 def _bandpass_pieces(t, x, rate_hz, band, order=4):
-    """:func:`bandpass` applied to each gap-free piece of the record."""
-    out = np.empty_like(np.asarray(x, dtype=float))
-    for sl in _pieces(t, rate_hz):
+    """:func:`bandpass` applied to each gap-free piece of the record; pieces too short to
+    filter are NaN."""
+    out = np.full(np.shape(x), np.nan)
+    for sl in _long_pieces(t, rate_hz, order):
         out[sl] = bandpass(x[sl], rate_hz, band, order)
     return out
 
@@ -288,7 +297,7 @@ class TLFit:
     ``cv_alphas`` and ``cv_errors`` (the grid and the held-out RMS in nT, empty when not
     auto); ``rate_hz``; ``offset_nT`` (the box mean of the raw-feature interference,
     subtracted by :meth:`predict`); ``n_samples`` and ``box_s`` (samples and seconds of the
-    box); ``before_nT`` and ``after_nT`` (std of the band-passed scalar in the box before and
+    box used: pieces between gaps too short to filter are left out); ``before_nT`` and ``after_nT`` (std of the band-passed scalar in the box before and
     after compensation); ``condition`` (condition number of the standardised band-passed
     features: large means some terms are not determined by the manoeuvres and lean on the
     ridge).
@@ -373,7 +382,9 @@ def fit(t, cosines, total, scalar, *, terms=18, band=None, ridge="auto"):
     ``scalar`` (n,) the scalar sensor's reading (nT). ``band``: (low_hz, high_hz) or None for
     :func:`choose_band`. ``ridge``: "auto" (cross-validated on CV_BLOCKS contiguous blocks
     over RIDGE_GRID, the alpha with the least held-out RMS), or a number >= 0 (0 = least
-    squares). Both sides are band-passed (each gap-free piece apart), the band-passed
+    squares). Both sides are band-passed, each gap-free piece apart (a gap is longer than
+    GAP_SAMPLES sample intervals; pieces shorter than the filter's padding, 28 samples, are
+    left out), the band-passed
     features standardised by their RMS, the ridge solved by SVD and the coefficients scaled
     back to physical units. Returns a :class:`TLFit`.
     """
@@ -386,15 +397,22 @@ def fit(t, cosines, total, scalar, *, terms=18, band=None, ridge="auto"):
     rate_hz = _rate(t, "Tolles-Lawson fit")
     band = choose_band(t, u, rate_hz) if band is None else _check_band(
         band, rate_hz, "Tolles-Lawson fit")
-    pieces = _pieces(t, rate_hz)
+    pieces = _long_pieces(t, rate_hz)
+    used = np.zeros(n, dtype=bool)
+    for sl in pieces:
+        used[sl] = True
+    if used.sum() < SAMPLES_PER_TERM * terms:
+        raise SurveyError(f"Tolles-Lawson fit: too few samples ({int(used.sum())}) in pieces "
+                          f"of at least {_min_piece()} between gaps for {terms} terms (at least "
+                          f"{SAMPLES_PER_TERM * terms})")
     box_s = float(sum(t[sl.stop - 1] - t[sl.start] + 1 / rate_hz for sl in pieces))
     if box_s < BOX_PERIODS / band[0]:
         raise SurveyError(f"Tolles-Lawson fit: calibration box too short ({box_s:.1f} s "
                           f"from t={t[0]:.3f} s) for a {band[0]:.3g}-Hz band edge (at least "
                           f"{BOX_PERIODS / band[0]:.1f} s)")
     X = features(t, u, T, terms)
-    Xf = _bandpass_pieces(t, X, rate_hz, band)
-    yf = _bandpass_pieces(t, y, rate_hz, band)
+    Xf = _bandpass_pieces(t, X, rate_hz, band)[used]
+    yf = _bandpass_pieces(t, y, rate_hz, band)[used]
     scale = np.sqrt(np.mean(Xf ** 2, axis=0))
     if np.any(scale == 0):
         k = int(np.flatnonzero(scale == 0)[0])
@@ -428,11 +446,11 @@ def fit(t, cosines, total, scalar, *, terms=18, band=None, ridge="auto"):
     else:
         c_std = _ridge_solve(U, s, Vt, yf, [alpha])[:, 0]
     coefficients = c_std / scale
-    offset = float(np.mean(X @ coefficients))
+    offset = float(np.mean(X[used] @ coefficients))
     residual = yf - Xf @ coefficients
     return TLFit(coefficients=coefficients, terms=terms, band=(float(band[0]), float(band[1])),
                  ridge_alpha=alpha, ridge_auto=auto, rate_hz=rate_hz, offset_nT=offset,
-                 n_samples=n, box_s=box_s, before_nT=float(np.std(yf)),
+                 n_samples=int(used.sum()), box_s=box_s, before_nT=float(np.std(yf)),
                  after_nT=float(np.std(residual)), condition=condition,
                  cv_alphas=cv_alphas, cv_errors=cv_errors)
 
@@ -459,8 +477,11 @@ def improvement_ratio(t, uncompensated, compensated, band):
     _, after = _finite_series(t, compensated, "improvement_ratio")
     rate_hz = _rate(t, "improvement_ratio")
     band = _check_band(band, rate_hz, "improvement_ratio")
-    sb = np.std(_bandpass_pieces(t, before, rate_hz, band))
-    sa = np.std(_bandpass_pieces(t, after, rate_hz, band))
+    sb = np.nanstd(_bandpass_pieces(t, before, rate_hz, band))
+    sa = np.nanstd(_bandpass_pieces(t, after, rate_hz, band))
+    if not np.isfinite(sa):
+        raise SurveyError(f"improvement_ratio: no piece of at least {_min_piece()} samples "
+                          "between gaps")
     if sa == 0:
         raise SurveyError("improvement_ratio: the compensated signal is constant in the band")
     return float(sb / sa)
@@ -481,10 +502,10 @@ def figure_of_merit(t, compensated, segments, band):
         raise SurveyError("figure_of_merit: no manoeuvre segments")
     total = 0.0
     for start, end in segments:
-        sel = (t >= start) & (t <= end)
+        sel = (t >= start) & (t <= end) & np.isfinite(xf)
         if sel.sum() < 2:
             raise SurveyError(f"figure_of_merit: segment {start:.3f}-{end:.3f} s has fewer "
-                              f"than 2 samples (data {t[0]:.3f}-{t[-1]:.3f} s)")
+                              f"than 2 filtered samples (data {t[0]:.3f}-{t[-1]:.3f} s)")
         total += float(np.ptp(xf[sel]))
     return total
 

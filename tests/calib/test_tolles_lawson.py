@@ -309,6 +309,32 @@ def test_predict_removes_the_box_mean(box):
     np.testing.assert_allclose(whole[m], f.predict(t, u, T), atol=0.05)
 
 
+def test_gaps_split_the_record(box):
+    """A 10-s hole in the box: each side is filtered apart, the prediction is unchanged
+    within the noise; a 2-s island between two holes is too short to filter and is left
+    out of the fit."""
+    m = box["box_mask"].copy()
+    t = box["t"]
+    full = _fit_box(box, terms=16)
+    m[(t > 40) & (t < 50)] = False
+    m[(t > 60) & (t < 65)] = False
+    m[(t > 67) & (t < 72)] = False
+    holed = tl.fit(*(box[k][m] for k in ("t", "cosines", "total", "scalar")), terms=16,
+                   band=full.band)
+    assert holed.n_samples == m.sum() - 20
+    whole = (box["t"], box["cosines"], box["total"])
+    err = full.predict(*whole) - holed.predict(*whole)
+    assert np.std(err[box["box_mask"]]) < 0.02
+
+
+def test_predict_passes_nan_through(box):
+    f = _fit_box(box, terms=16)
+    t, u, T = (box[k].copy() for k in ("t", "cosines", "total"))
+    u[200] = np.nan
+    p = f.predict(t, u, T)
+    assert np.isnan(p[200]) and np.isfinite(p[:199]).all() and np.isfinite(p[202:]).all()
+
+
 def test_as_dict_is_plain_json(box):
     import json
     m = box["box_mask"]
