@@ -136,9 +136,10 @@ def test_spline_recovers_the_field_inside_the_survey(spline_grid):
     span = np.ptp(truth[inside])
     assert 50 < span < 400                     # the survey's 20-200 nT anomalies
     assert np.isfinite(error).all()
-    # Stated tolerance: RMS under 1 %, worst node under 5 % of the field's range.
-    assert np.sqrt(np.mean(error ** 2)) < 0.01 * span
-    assert np.max(np.abs(error)) < 0.05 * span
+    # Stated tolerance: RMS under 0.5 %, worst node under 3 % of the field's range
+    # (measured: 0.19 % and 1.3 %, 0.23 nT and 1.6 nT of 122 nT).
+    assert np.sqrt(np.mean(error ** 2)) < 0.005 * span
+    assert np.max(np.abs(error)) < 0.03 * span
 
 
 def test_eqs_recovers_the_field_inside_the_survey(data):
@@ -148,8 +149,8 @@ def test_eqs_recovers_the_field_inside_the_survey(data):
     truth = true_anomaly(n, e)
     error = ds.anomaly.values[inside] - truth[inside]
     span = np.ptp(truth[inside])
-    assert np.sqrt(np.mean(error ** 2)) < 0.01 * span
-    assert np.max(np.abs(error)) < 0.05 * span
+    assert np.sqrt(np.mean(error ** 2)) < 0.005 * span     # measured 0.13 %
+    assert np.max(np.abs(error)) < 0.03 * span             # measured 0.72 %
     summary = gridding.grid_summary(ds)
     assert summary["method"] == "eqs"
     assert summary["damping"] == gridding.EQS_DEFAULT_DAMPING
@@ -247,7 +248,8 @@ def test_to_utm_resamples_the_grid(utm_grid):
     truth = true_anomaly(north, east)[inside]
     error = utm_grid.anomaly.values[inside] - truth
     assert np.isfinite(error).all()
-    assert np.max(np.abs(error)) < 0.07 * np.ptp(truth)   # + bilinear resampling
+    # Gridding plus bilinear resampling: measured 1.9 % of the range at the worst node.
+    assert np.max(np.abs(error)) < 0.04 * np.ptp(truth)
     with pytest.raises(SurveyError, match="already in EPSG:32632"):
         gridding.to_utm(utm_grid, LAT0, LON0)
 
