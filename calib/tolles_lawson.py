@@ -47,7 +47,7 @@ from scipy import signal
 from .survey_errors import SurveyError
 
 
-__all__ = ["TERM_NAMES", "TLFit", "DeinterfResult", "features", "bandpass", "choose_band",
+__all__ = ["TERM_NAMES", "TLFit", "features", "bandpass", "choose_band",
            "fit", "improvement_ratio", "figure_of_merit", "deinterf_compensate"]
 
 
@@ -513,24 +513,6 @@ def figure_of_merit(t, compensated, segments, band):
 # ---------------------------------------------------------------------------------------
 # comparison through deinterf
 
-@dataclass
-class DeinterfResult:
-    """deinterf's compensation of the whole record: ``compensated`` (scalar minus
-    ``interference``, nT), ``interference`` (deinterf's prediction, its mean over the whole
-    record removed), ``coefficients`` (deinterf's, on its standardised unfiltered features:
-    not comparable with :class:`TLFit`'s), ``alpha`` (RidgeCV's choice) and ``settings``."""
-    compensated: np.ndarray
-    interference: np.ndarray
-    coefficients: np.ndarray
-    alpha: float
-    settings: dict
-
-    def as_dict(self):
-        return {"alpha": float(self.alpha),
-                "coefficients_standardised": [float(c) for c in self.coefficients],
-                **self.settings}
-
-
 def deinterf_compensate(t, cosines_or_vectors, total, scalar, box_mask, terms=16):
     """Compensate ``scalar`` with deinterf's ``TollesLawson`` fitted on ``box_mask``.
 
@@ -555,7 +537,14 @@ def deinterf_compensate(t, cosines_or_vectors, total, scalar, box_mask, terms=16
 
     The coefficients therefore differ from :class:`TLFit`'s in scale and, where the
     manoeuvres do not determine a term, in value; the compensated signals agree where the
-    fit is well determined. Returns a :class:`DeinterfResult`.
+    fit is well determined.
+
+    Returns a dict: ``"compensated"`` (n,) the scalar minus deinterf's interference (its
+    mean over the whole record removed), nT; and plain JSON values: ``"version"``
+    ("deinterf 1.2.0"), ``"alpha"`` (RidgeCV's choice), ``"coefficients_standardised"``
+    (deinterf's, on its standardised unfiltered features: not comparable with
+    :class:`TLFit`'s), ``"settings"`` (a dict: terms, band, filter, rate, derivative,
+    estimator, normalisation, input, box samples).
     """
     _check_terms(terms)
     t = _check_t(t, "deinterf_compensate")
@@ -617,7 +606,7 @@ def deinterf_compensate(t, cosines_or_vectors, total, scalar, box_mask, terms=16
                          sampling_rate=rate_int)
     model.fit(container(mask), Tmi(y[mask]))
     interference = np.asarray(model.predict(container(slice(None))), dtype=float)
-    settings = {"package": f"deinterf {version}", "terms": int(terms),
+    settings = {"terms": int(terms),
                 "band_hz": [0.1, 0.6], "filter": "butter(4) filtfilt",
                 "sampling_rate_hz": rate_int, "derivative": "np.gradient per sample",
                 "estimator": "RidgeCV(alphas=logspace(-6, 6, 13), cv=10, "
@@ -625,6 +614,8 @@ def deinterf_compensate(t, cosines_or_vectors, total, scalar, box_mask, terms=16
                 "norm": "StandardScaler before the band-pass",
                 "input": "MagVector" if as_vectors else "DirectionalCosine + MagIntensity",
                 "box_samples": int(mask.sum())}
-    return DeinterfResult(compensated=y - interference, interference=interference,
-                          coefficients=np.asarray(model.model_.coef_, dtype=float).ravel(),
-                          alpha=float(model.model_.alpha_), settings=settings)
+    return {"compensated": y - interference, "version": f"deinterf {version}",
+            "alpha": float(model.model_.alpha_),
+            "coefficients_standardised": [float(c) for c in
+                                          np.asarray(model.model_.coef_, dtype=float).ravel()],
+            "settings": settings}
