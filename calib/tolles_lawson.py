@@ -297,10 +297,11 @@ class TLFit:
     ``cv_alphas`` and ``cv_errors`` (the grid and the held-out RMS in nT, empty when not
     auto); ``rate_hz``; ``offset_nT`` (the box mean of the raw-feature interference,
     subtracted by :meth:`predict`); ``n_samples`` and ``box_s`` (samples and seconds of the
-    box used: pieces between gaps too short to filter are left out); ``before_nT`` and ``after_nT`` (std of the band-passed scalar in the box before and
-    after compensation); ``condition`` (condition number of the standardised band-passed
-    features: large means some terms are not determined by the manoeuvres and lean on the
-    ridge).
+    box used: pieces between gaps too short to filter are left out); ``before_nT`` and
+    ``after_nT`` (std of the band-passed scalar in the box before and after compensation);
+    ``condition`` (condition number of the standardised band-passed features: large means
+    some terms are not determined by the manoeuvres and lean on the ridge; about 25 for 16
+    terms on the four-heading box, thousands for 18, which are rank-deficient).
     """
     coefficients: np.ndarray
     terms: int

@@ -12,8 +12,6 @@ interpolated to the cesium times. The interference is evaluated by this file's o
 module's ``features``.
 """
 
-import time
-
 import numpy as np
 import pytest
 from scipy import signal
