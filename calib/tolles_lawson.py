@@ -256,8 +256,9 @@ def choose_band(t, cosines, rate_hz=None):
     strong frequency to twice the highest (an octave of margin each side, so the Butterworth
     skirts do not cut the manoeuvres), clipped to (0.02 Hz, 0.45 × rate).
 
-    For the calibration box of sim/stimulus/flight.py (rolls and pitches of two swings and
-    yaws of one swing, each over about 5 s) this gives roughly 0.03–0.9 Hz.
+    For the calibration box of sim/stimulus/flight.py at 10 Hz (rolls and pitches of two
+    swings and yaws of one swing, each over 5.3 s, on four headings: 80 s) this gives about
+    0.08–0.13 Hz to 1.5 Hz (deinterf's fixed band: 0.1–0.6 Hz).
     """
     t, u, _, _ = _check_inputs(t, cosines, np.ones(np.shape(t)), None, "choose_band")
     if rate_hz is None:
