@@ -358,7 +358,9 @@ def find_lines(t, north, east, *, min_length_m=50.0, peak_fraction=0.5, min_spee
        group with the most stretches left holds the survey lines (on a draw, the group
        flown first), the perpendicular one (±``course_tolerance_deg``) the tie lines; other
        stretches are dropped. A tie line must cross at
-       least ``min_tie_crossings`` survey lines (the steps between lines cross none).
+       least ``min_tie_crossings`` survey lines (the steps between lines cross none); when
+       two or more ties are found, a survey line must cross at least one of them (the steps
+       between the ties, on the lines' axis, cross none).
 
     Returns a list of :class:`Line` in flight order, each kind numbered from 0. Raises
     :class:`SurveyError` when fewer than two survey lines are found.
@@ -485,6 +487,11 @@ def _classify(stretches, tolerance, min_fraction, min_tie_crossings):
     ties = [s for s in group(tie_axis)
             if sum(_segments_cross(s["p1"], s["p2"], L["p1"], L["p2"]) for L in survey)
             >= min_tie_crossings]
+    if len(ties) >= 2:
+        # With ties flown, every survey line crosses one; the steps between the ties (on
+        # the lines' axis, beyond the outermost line) cross none.
+        survey = [s for s in survey
+                  if any(_segments_cross(s["p1"], s["p2"], T["p1"], T["p2"]) for T in ties)]
     out = []
     for kind, chosen in (("line", survey), ("tie", ties)):
         for k, s in enumerate(sorted(chosen, key=lambda s: s["start"])):

@@ -380,7 +380,7 @@ def write_geotiff(ds, path):
     band = band.rio.write_crs(ds.attrs["grid_crs"]).rio.write_nodata(np.nan, encoded=False)
     band.attrs.update({k: v for k, v in ds.attrs.items() if isinstance(v, (str, int, float))})
     path = Path(path)
-    band.rio.to_raster(path)
+    band.rio.to_raster(path, driver="GTiff")      # any file name (a staged .tmp too)
     return path
 
 

@@ -870,6 +870,8 @@ def _parser():
                             help="the filters' MAX_FRAME (default: %(default)s)")
     record_cmd.add_argument("--force", action="store_true", help="replace an existing log")
     record_cmd.set_defaults(func=_cmd_record)
+    from .survey import register as register_survey
+    register_survey(commands)
     return parser
 
 

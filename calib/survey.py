@@ -1,0 +1,836 @@
+"""From a card image to a survey product: the data reduction of airborne magnetics.
+
+card → the largest ``LOG*.TXT`` → parsed streams → the vector magnetometer calibrated
+(:func:`~maglog.calib.pipeline.calibrate_card`, cesium reference) → cesium samples timed →
+direction cosines at the cesium samples → Tolles–Lawson compensation fitted on the
+calibration box (:mod:`.tolles_lawson`) → georeferencing from GGA, IGRF removed
+(:mod:`.georef`) → diurnal correction from a base station (:mod:`.diurnal`, optional) →
+lines found and levelled on the tie lines (:mod:`.levelling`) → gridded with verde, NetCDF,
+GeoTIFF, map (:mod:`.gridding`) → report (Markdown, HTML, PNGs, ``survey.json``).
+
+Timing the cesium samples
+-------------------------
+The log has no timestamps; :mod:`.logparse` times the magnetometer by its sequence numbers
+(good to milliseconds) but the cesium only by its place between GPS lines (errors up to
+0.2 s). Tolles–Lawson needs the two sensors on one time base to a few milliseconds: the
+interference changes by up to ~20 nT/s in the manoeuvres. So each cesium line is first
+timed by the magnetometer lines around it in the log (interpolated in line number: ± half a
+magnetometer period, 25 ms at 20 Hz), then, since the cesium samples at a steady rate, its
+sample count is unrolled (each step rounded to whole periods, so drops are counted) and a
+straight line ``t = t0 + k / rate`` fitted to those times by least squares. Both sensors'
+lines arrive after their sample instant by their own transmission time, so the cesium
+times are moved back by the difference (:data:`CESIUM_BAUD`, :data:`MAG_BAUD`, the lines'
+own lengths). If the straight line leaves residuals above a third of a period (a sensor
+restart, a rate change) the bracketed times are used and the report says so.
+
+The calibration box
+-------------------
+Tolles–Lawson is fitted on the calibration box: the hovering manoeuvres (rolls, pitches and
+yaws on four headings) before the lines. It is found as the longest stretch in which the
+aircraft hovers (GPS speed below :data:`HOVER_SPEED` m/s, :data:`HOVER_HEIGHT` m above the
+lowest fix) and the direction cosines move (their band-passed RMS over 4 s above
+:data:`ACTIVE_COSINE`), gaps up to :data:`BOX_GAP_S` closed (the turns between headings).
+``box=(start, end)`` (seconds of day, UTC) overrides it. The figure of merit sums the
+band-passed peak-to-peak over the box's twelve equal parts (four headings of roll, pitch and
+yaw, as the scenario flies them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import math
+import os
+import warnings as _warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .survey_errors import SurveyError
+
+__all__ = ["SurveyOptions", "SurveyResult", "survey_card", "write_products", "cesium_times",
+           "find_box", "SURVEY_FILES", "HOVER_SPEED", "HOVER_HEIGHT", "ACTIVE_COSINE",
+           "BOX_GAP_S", "CESIUM_BAUD", "MAG_BAUD"]
+
+#: The sensors' line rates (the scenario's and the original design's), for the
+#: transmission-time correction of the cesium times.
+CESIUM_BAUD = 9_600
+MAG_BAUD = 115_200
+UART_BITS = 10
+HOVER_SPEED = 1.0
+HOVER_HEIGHT = 5.0
+ACTIVE_COSINE = 0.02
+BOX_GAP_S = 15.0
+MIN_BOX_S = 20.0
+#: Files :func:`write_products` writes.
+SURVEY_FILES = ("report.md", "report.html", "survey.json", "samples.csv", "anomaly.nc",
+                "anomaly.tif", "map.png", "compensation.png", "levelling.png")
+
+
+@dataclass
+class SurveyOptions:
+    """Settings of one survey reduction (the command line's options)."""
+    terms: int = 18                 # Tolles–Lawson terms: 16 or 18
+    band: tuple | None = None       # (low, high) Hz; None: from the manoeuvres
+    ridge: object = "auto"          # "auto" or a non-negative float
+    base_station: object = None     # path of a base-station CSV, or None
+    max_base_gap_s: float = 10.0
+    box: tuple | None = None        # (start, end) seconds of day UTC; None: found
+    spacing_m: float | None = None  # grid spacing; None: a third of the line spacing
+    grid_method: str = "spline"     # "spline" or "eqs"
+    level_order: int = 0            # 0: a constant per line, 1: linear in time
+    lag_s: float | None = None      # positions' lag behind the samples; None: estimated
+    seed: int = 0                   # the vector calibration's swarm seed
+    truth: object = None            # truth.json of a simulated flight (scores the result)
+    compare_deinterf: bool = True
+
+    def check(self):
+        if self.terms not in (16, 18):
+            raise SurveyError(f"terms must be 16 or 18, not {self.terms!r}")
+        if self.band is not None:
+            low, high = self.band
+            if not (0 < low < high):
+                raise SurveyError(f"band must be two frequencies 0 < low < high (Hz), not "
+                                  f"{low:g},{high:g}")
+        if self.ridge != "auto" and not (isinstance(self.ridge, (int, float))
+                                         and math.isfinite(self.ridge) and self.ridge >= 0):
+            raise SurveyError(f"ridge must be 'auto' or a number >= 0, not {self.ridge!r}")
+        if self.spacing_m is not None and not self.spacing_m > 0:
+            raise SurveyError(f"grid spacing must be > 0 m, not {self.spacing_m!r}")
+        if self.grid_method not in ("spline", "eqs"):
+            raise SurveyError(f"grid method must be spline or eqs, not {self.grid_method!r}")
+        if self.level_order not in (0, 1):
+            raise SurveyError(f"levelling order must be 0 or 1, not {self.level_order!r}")
+        if not self.max_base_gap_s > 0:
+            raise SurveyError(f"the base station's largest gap must be > 0 s, not "
+                              f"{self.max_base_gap_s!r}")
+        if self.box is not None and not self.box[0] < self.box[1]:
+            raise SurveyError(f"the calibration box must end after it starts, not "
+                              f"{self.box[0]:g}-{self.box[1]:g}")
+        return self
+
+
+# --- timing --------------------------------------------------------------------------------
+
+@dataclass
+class CesiumTiming:
+    t: np.ndarray               # sample times (seconds of day)
+    method: str                 # "rate" or "bracketed"
+    rate_hz: float
+    residual_s: float           # RMS of the bracketed times about the straight line
+    drops: int                  # samples the count says are missing
+    lag_s: float                # transmission-time correction applied
+
+    def as_dict(self):
+        return {"method": self.method, "rate_hz": self.rate_hz,
+                "residual_ms": 1e3 * self.residual_s, "drops": self.drops,
+                "lag_ms": 1e3 * self.lag_s}
+
+
+def _line_seconds(length, baud):
+    return length * UART_BITS / baud
+
+
+def cesium_times(parsed, *, cesium_baud=CESIUM_BAUD, mag_baud=MAG_BAUD):
+    """The cesium samples' times (module docstring): :class:`CesiumTiming`."""
+    mag, ces = parsed.mag, parsed.cesium
+    ok = np.isfinite(mag.t)
+    if ok.sum() < 2:
+        raise SurveyError(f"{parsed.name}: no GPS fix in the log (no GGA with a fix and a "
+                          "time): the samples have no time and no position")
+    if len(ces) < 10:
+        raise SurveyError(f"{parsed.name}: only {len(ces)} cesium readings")
+    bracket = np.interp(ces.line, mag.line[ok], mag.t[ok], left=np.nan, right=np.nan)
+    inside = np.isfinite(bracket)
+    if inside.sum() < 10:
+        raise SurveyError(f"{parsed.name}: only {int(inside.sum())} cesium readings lie "
+                          "between timed magnetometer samples")
+    # Both lines arrive one transmission time after their sample; the cesium's is longer.
+    ces_len, mag_len = 18, 45        # "$ 49895.131,1249\r\n", "$PMAG1,...*hh\r\n"
+    lag = _line_seconds(ces_len, cesium_baud) - _line_seconds(mag_len, mag_baud)
+    tb = bracket[inside]
+    steps = np.diff(tb)
+    period = float(np.median(steps))
+    if not period > 0:
+        raise SurveyError(f"{parsed.name}: the cesium readings are not in time order")
+    k = np.concatenate([[0], np.cumsum(np.maximum(1, np.round(steps / period)))])
+    t = np.full(len(ces), np.nan)
+    for _ in range(3):
+        a = np.vstack([np.ones_like(k), k]).T
+        coef, *_ = np.linalg.lstsq(a, tb, rcond=None)
+        fitted = a @ coef
+        residual = float(np.sqrt(np.mean((tb - fitted) ** 2)))
+        period = float(coef[1])
+    drops = int(k[-1] + 1 - len(k))
+    if residual < period / 3:
+        t[inside] = fitted - lag
+        method = "rate"
+    else:
+        t[inside] = tb - lag
+        method = "bracketed"
+    return CesiumTiming(t=t, method=method, rate_hz=1.0 / period, residual_s=residual,
+                        drops=drops, lag_s=lag)
+
+
+# --- the calibration box -------------------------------------------------------------------
+
+def _runs(mask):
+    """(start, stop) index pairs of the True runs of ``mask``."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))
+
+
+def _moving_rms(x, width):
+    width = max(1, int(width))
+    kernel = np.ones(width) / width
+    return np.sqrt(np.convolve(x ** 2, kernel, mode="same"))
+
+
+def find_box(t, cosines, speed, height, rate_hz):
+    """The calibration box (module docstring): (start, end) seconds, or SurveyError."""
+    from .tolles_lawson import bandpass
+    good = np.isfinite(speed) & np.isfinite(height) & np.all(np.isfinite(cosines), axis=1)
+    moving = np.zeros(len(t))
+    if good.sum() > 10 * rate_hz:
+        filled = np.where(np.isfinite(cosines), cosines, 0.0)
+        moved = bandpass(filled, rate_hz, (0.05, min(1.0, 0.45 * rate_hz)))
+        moving = _moving_rms(np.linalg.norm(moved, axis=1), 4 * rate_hz)
+    with np.errstate(invalid="ignore"):
+        hover = good & (speed < HOVER_SPEED) & (height > HOVER_HEIGHT) & (moving > ACTIVE_COSINE)
+    runs = _runs(hover)
+    # Close the gaps of up to BOX_GAP_S between runs (the turns).
+    merged = []
+    for start, stop in runs:
+        if merged and t[start] - t[merged[-1][1] - 1] <= BOX_GAP_S:
+            merged[-1] = (merged[-1][0], stop)
+        else:
+            merged.append((start, stop))
+    if not merged:
+        raise SurveyError("no calibration box found (no hovering manoeuvres: rolls, pitches, "
+                          "yaws); give it with --box START-END")
+    start, stop = max(merged, key=lambda r: t[r[1] - 1] - t[r[0]])
+    if t[stop - 1] - t[start] < MIN_BOX_S:
+        raise SurveyError(f"the calibration box found is only {t[stop - 1] - t[start]:.0f} s "
+                          f"long (at least {MIN_BOX_S:.0f} s needed); give it with --box")
+    return float(t[start]), float(t[stop - 1])
+
+
+def _segments(start, end, parts=12):
+    edges = np.linspace(start, end, parts + 1)
+    return list(zip(edges[:-1], edges[1:]))
+
+
+# --- the reduction -------------------------------------------------------------------------
+
+@dataclass
+class SurveyResult:
+    """Everything :func:`survey_card` computed; :meth:`summary` gives the report's figures."""
+    log_name: str
+    date: _dt.date | None
+    options: SurveyOptions
+    timing: CesiumTiming
+    t: np.ndarray               # cesium sample times (seconds of day)
+    raw: np.ndarray             # cesium total field, nT
+    cosines: np.ndarray         # (n, 3) calibrated field direction in the body frame
+    box: tuple
+    box_source: str
+    tl: object                  # tolles_lawson.TLFit applied
+    tl_other: object            # the other term count's fit (16 or 18)
+    compensated: np.ndarray
+    deinterf: dict | None       # deinterf's compensated series and settings
+    track: object               # georef.Track at t
+    igrf: np.ndarray
+    diurnal: np.ndarray | None
+    anomaly: np.ndarray         # compensated - IGRF (- diurnal)
+    lines: list
+    levelling: object
+    levelled: np.ndarray
+    grid: object                # xarray.Dataset (local metres)
+    grid_info: dict
+    calibration: object         # pipeline.CalibrationRun of the vector magnetometer
+    notes: list = field(default_factory=list)
+    scores: dict = field(default_factory=dict)   # against the truth, when given
+    times: dict = field(default_factory=dict)    # seconds per step
+    lag: dict = field(default_factory=dict)      # the lag correction (estimate_lag)
+
+    def on_lines(self):
+        mask = np.zeros(len(self.t), bool)
+        for line in self.lines:
+            mask |= (self.t >= line.start) & (self.t <= line.end)
+        return mask
+
+
+def _check_path(path, what):
+    path = Path(path)
+    if not path.is_file():
+        raise SurveyError(f"{path}: no such {what}")
+    return path
+
+
+def survey_card(path, options=None):
+    """Reduce the largest log on a card image (or partition image, or plain log) to a
+    levelled, gridded anomaly (module docstring). Bad input ends in a :class:`SurveyError`
+    (or the card reader's and calibration's own errors, which the caller reports the same
+    way). Nothing is printed."""
+    options = (options or SurveyOptions()).check()
+    with _warnings.catch_warnings(), np.errstate(all="ignore"):
+        _warnings.simplefilter("ignore")
+        return _survey(Path(path), options)
+
+
+def _clock():
+    import time
+    return time.perf_counter()
+
+
+def _survey(path, options):
+    from . import tolles_lawson as tl
+    from .diurnal import diurnal_correction, read_base_station
+    from .georef import find_lines, georeference, igrf_total
+    from .gridding import grid_anomaly, grid_summary
+    from .levelling import crossovers, level
+    from .pipeline import calibrate_card
+    from .scalar import apply_scalar
+
+    times = {}
+    mark = _clock()
+    if options.base_station is not None:
+        _check_path(options.base_station, "base-station file")
+    run = calibrate_card(path, ref="cesium", method="pso", seed=options.seed)
+    times["vector_calibration_s"] = _clock() - mark
+    parsed = run.parsed
+    notes = list(run.warnings)
+
+    mark = _clock()
+    timing = cesium_times(parsed)
+    ces = parsed.cesium
+    valid = np.isfinite(timing.t) & (ces.field > 1_000) & (ces.field < 1_000_000)
+    t, raw = timing.t[valid], ces.field[valid]
+    if timing.method != "rate":
+        notes.append(f"cesium samples timed by the magnetometer lines around them (their "
+                     f"steady rate left {1e3 * timing.residual_s:.0f} ms RMS)")
+    mag = parsed.mag
+    ok = np.isfinite(mag.t)
+    vectors = apply_scalar(run.result.K, run.result.c, mag.b[ok])
+    vt = mag.t[ok]
+    vec = np.column_stack([np.interp(t, vt, vectors[:, k], left=np.nan, right=np.nan)
+                           for k in range(3)])
+    cosines = vec / np.linalg.norm(vec, axis=1, keepdims=True)
+    keep = np.all(np.isfinite(cosines), axis=1)
+    t, raw, cosines = t[keep], raw[keep], cosines[keep]
+    rate = timing.rate_hz
+
+    track = georeference(parsed, t)
+    times["timing_georef_s"] = _clock() - mark
+
+    # The calibration box and Tolles–Lawson.
+    mark = _clock()
+    if options.box is not None:
+        box, box_source = tuple(map(float, options.box)), "given"
+    else:
+        speed = _speed(track)
+        height = track.alt - np.nanmin(track.alt)
+        box, box_source = find_box(t, cosines, speed, height, rate), "found"
+    in_box = (t >= box[0]) & (t <= box[1])
+    if in_box.sum() < 20 * rate:
+        raise SurveyError(f"the calibration box {_tod(box[0])}-{_tod(box[1])} holds only "
+                          f"{int(in_box.sum())} cesium samples")
+    fits = {}
+    for terms in (16, 18):
+        fits[terms] = tl.fit(t[in_box], cosines[in_box], raw[in_box], raw[in_box],
+                             terms=terms, band=options.band, ridge=options.ridge)
+    chosen = fits[options.terms]
+    other = fits[34 - options.terms]
+    compensated = raw - chosen.predict(t, cosines, raw)
+    deinterf = None
+    if options.compare_deinterf:
+        deinterf = tl.deinterf_compensate(t, cosines, raw, raw, in_box, options.terms)
+    times["tolles_lawson_s"] = _clock() - mark
+
+    # Georeferenced anomaly: IGRF, diurnal.
+    mark = _clock()
+    date = parsed.date
+    if date is None:
+        raise SurveyError(f"{parsed.name}: no ZDA date in the log: IGRF needs the date")
+    igrf = igrf_total(date, track.lat, track.lon, track.alt)
+    anomaly = compensated - igrf
+    diurnal = None
+    if options.base_station is not None:
+        base = read_base_station(options.base_station)
+        epoch = _dt.datetime(date.year, date.month, date.day, tzinfo=_dt.timezone.utc)
+        diurnal = diurnal_correction(base, epoch, t, max_gap_s=options.max_base_gap_s)
+        anomaly = anomaly - diurnal
+    times["igrf_diurnal_s"] = _clock() - mark
+
+    # Lines, the lag correction, levelling, grid.
+    mark = _clock()
+    lines = find_lines(t, track.north, track.east)
+    if options.lag_s is None:
+        lag, lag_table = estimate_lag(parsed, t, lines, anomaly, track.origin)
+    else:
+        lag, lag_table = float(options.lag_s), []
+    if lag:
+        track = dataclasses.replace(georeference(parsed, t + lag, origin=track.origin), t=t)
+        anomaly = anomaly + igrf
+        igrf = igrf_total(date, track.lat, track.lon, track.alt)
+        anomaly = anomaly - igrf
+        lines = find_lines(t, track.north, track.east)
+    times["lag_s"] = _clock() - mark
+    mark = _clock()
+    cross = crossovers(lines, t, track.north, track.east, anomaly)
+    levelling = level(lines, t, anomaly, cross, order=options.level_order)
+    levelled = levelling.values
+    times["levelling_s"] = _clock() - mark
+    mark = _clock()
+    on = np.zeros(len(t), bool)
+    for line in lines:
+        on |= (t >= line.start) & (t <= line.end)
+    on &= np.isfinite(levelled) & np.isfinite(track.north)
+    grid = grid_anomaly(track.north[on], track.east[on], levelled[on],
+                        spacing_m=options.spacing_m, method=options.grid_method)
+    times["gridding_s"] = _clock() - mark
+    lag_record = {"lag_s": lag, "source": "given" if options.lag_s is not None else
+                  "crossovers", "scan": lag_table}
+    result = SurveyResult(
+        log_name=parsed.name, date=date, options=options, timing=timing, t=t, raw=raw,
+        cosines=cosines, box=box, box_source=box_source, tl=chosen, tl_other=other,
+        compensated=compensated, deinterf=deinterf, track=track, igrf=igrf, diurnal=diurnal,
+        anomaly=anomaly, lines=lines, levelling=levelling, levelled=levelled, grid=grid,
+        grid_info=grid_summary(grid),
+        calibration=run, notes=notes, times=times, lag=lag_record)
+    if options.truth is not None:
+        result.scores = score_against_truth(result, options.truth)
+    return result
+
+
+#: The lags :func:`estimate_lag` tries (s): coarse steps over +-LAG_RANGE_S, then fine ones.
+LAG_RANGE_S = 1.0
+LAG_STEP_S = 0.05
+LAG_FINE_S = 0.005
+
+
+def estimate_lag(parsed, t, lines, anomaly, origin):
+    """The lag correction of airborne magnetics: the time by which the positions must be
+    taken later than the samples' times so that lines flown in opposite directions agree.
+
+    The log's times are GGA line arrival times with ``gps_latency`` 0, so every sample's
+    time is early by the GPS receiver's latency (its fix's age when the GGA line ends);
+    a sample is then placed ``speed × latency`` back along its line, in opposite senses on
+    neighbouring lines, and the anomaly's gradients turn that into crossover differences.
+    The lag is the one that minimises the crossover RMS of the (unlevelled) anomaly: a scan
+    in LAG_STEP_S over +-LAG_RANGE_S, then LAG_FINE_S steps around the best. Returns
+    (lag_s, [(lag_s, rms_nT, crossovers)]); (0.0, ...) when there are no crossovers."""
+    from .georef import georeference
+    from .levelling import crossovers
+
+    def rms(lag):
+        shifted = georeference(parsed, t + lag, origin=origin)
+        cross = crossovers(lines, t, shifted.north, shifted.east, anomaly)
+        d = np.asarray([c[-1] for c in cross], float)
+        d = d - d.mean() if d.size else d
+        return (float(np.sqrt(np.mean(d ** 2))) if d.size > 2 else math.inf), int(d.size)
+
+    scan = []
+    for lag in np.arange(-LAG_RANGE_S, LAG_RANGE_S + LAG_STEP_S / 2, LAG_STEP_S):
+        scan.append((round(float(lag), 6), *rms(float(lag))))
+    best = min(scan, key=lambda row: row[1])
+    if not math.isfinite(best[1]):
+        return 0.0, scan
+    for lag in np.arange(best[0] - LAG_STEP_S, best[0] + LAG_STEP_S + LAG_FINE_S / 2,
+                         LAG_FINE_S):
+        scan.append((round(float(lag), 6), *rms(float(lag))))
+    best = min(scan, key=lambda row: row[1])
+    return best[0], sorted(scan)
+
+
+def _speed(track):
+    """Ground speed (m/s) at the samples from the georeferenced track."""
+    t = track.t
+    good = np.isfinite(track.north) & np.isfinite(track.east)
+    speed = np.full(len(t), np.nan)
+    if good.sum() > 2:
+        vn = np.gradient(track.north[good], t[good])
+        ve = np.gradient(track.east[good], t[good])
+        speed[good] = np.hypot(vn, ve)
+    return speed
+
+
+def _tod(seconds):
+    seconds = float(seconds) % 86400
+    h, rest = divmod(seconds, 3600)
+    m, s = divmod(rest, 60)
+    return f"{int(h):02d}:{int(m):02d}:{s:04.1f}"
+
+
+# --- scores against a simulated flight's truth ---------------------------------------------
+
+METRES_PER_DEGREE = 111_320.0
+
+
+def read_truth(path):
+    """``truth.json`` of a simulated survey flight (it must hold a ``survey`` section)."""
+    path = Path(path)
+    try:
+        truth = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as error:
+        raise SurveyError(f"{path}: cannot read the truth ({error.strerror or error})") \
+            from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise SurveyError(f"{path}: not a truth file ({error})") from None
+    if not isinstance(truth, dict) or "survey" not in truth:
+        raise SurveyError(f"{path}: the truth has no survey section (not a survey scenario)")
+    return truth
+
+
+def _truth_local(survey, lat, lon, alt):
+    origin = survey["origin"]
+    north = (lat - origin["lat_deg"]) * METRES_PER_DEGREE
+    east = (lon - origin["lon_deg"]) * METRES_PER_DEGREE * math.cos(
+        math.radians(origin["lat_deg"]))
+    return north, east, alt - origin["ground_alt_m"]
+
+
+def score_against_truth(result, truth_path):
+    """The result against the scenario's truth: the compensated scalar's residual in the box
+    (against the noise floor), the levelled anomaly along the lines, and the grid and its
+    peak against the true anomaly on the same nodes."""
+    from ..sim.stimulus.geophysics import anomaly_total, diurnal_nT
+    truth = read_truth(truth_path)
+    survey = truth["survey"]
+    start = _dt.datetime.fromisoformat(truth["timestamp"])
+    day = start.replace(hour=0, minute=0, second=0, microsecond=0)
+    offset = (start - day).total_seconds()            # t_log = offset + t_truth
+    track = result.track
+    north, east, up = _truth_local(survey, track.lat, track.lon, track.alt)
+    true_anomaly = anomaly_total(survey, north, east, up)
+    true_diurnal = diurnal_nT(survey, result.t - offset)
+    scalar = result.igrf + true_anomaly + true_diurnal
+    box = (result.t >= result.box[0]) & (result.t <= result.box[1]) & np.isfinite(scalar)
+    noise = float(truth["reference"]["cesium_noise_nT"])
+
+    def rms_about_mean(x):
+        x = x[np.isfinite(x)]
+        return float(np.sqrt(np.mean((x - x.mean()) ** 2))) if x.size else math.nan
+
+    scores = {"noise_floor_nT": noise,
+              "box_residual_raw_nT": rms_about_mean((result.raw - scalar)[box]),
+              "box_residual_compensated_nT": rms_about_mean((result.compensated - scalar)[box])}
+    if result.deinterf is not None:
+        scores["box_residual_deinterf_nT"] = rms_about_mean(
+            (result.deinterf["compensated"] - scalar)[box])
+    scores["box_residual_over_floor"] = scores["box_residual_compensated_nT"] / noise
+    on = result.on_lines()
+    scores["line_anomaly_rms_nT"] = rms_about_mean((result.levelled - true_anomaly)[on])
+    scores["line_anomaly_unlevelled_rms_nT"] = rms_about_mean(
+        (result.anomaly - true_anomaly)[on])
+    scores["true_anomaly_range_nT"] = [float(np.nanmin(true_anomaly[on])),
+                                       float(np.nanmax(true_anomaly[on]))]
+    # The grid against the truth on its own nodes at the lines' mean height.
+    grid = result.grid
+    values = grid["anomaly"].values
+    gn, ge = np.meshgrid(grid["northing"].values, grid["easting"].values, indexing="ij")
+    lat0, lon0 = track.origin
+    lat = lat0 + gn / METRES_PER_DEGREE
+    lon = lon0 + ge / (METRES_PER_DEGREE * math.cos(math.radians(lat0)))
+    height = float(np.nanmean(track.alt[on]))
+    tn, te, tu = _truth_local(survey, lat, lon, np.full(lat.shape, height))
+    truth_grid = anomaly_total(survey, tn.ravel(), te.ravel(), tu.ravel()).reshape(gn.shape)
+    inside = np.isfinite(values)
+    diff = values[inside] - truth_grid[inside]
+    scores["grid_rms_nT"] = float(np.sqrt(np.mean((diff - diff.mean()) ** 2)))
+    scores["grid_offset_nT"] = float(diff.mean())
+    k = np.nanargmax(np.abs(np.where(inside, values, np.nan)))
+    j = np.nanargmax(np.abs(np.where(inside, truth_grid, np.nan)))
+    # A map's level is a datum (the base station's median, the box's mean interference):
+    # the peak is measured above the grid's mean offset from the truth.
+    offset = scores["grid_offset_nT"]
+    scores["peak"] = {
+        "recovered_nT": float(values.flat[k] - offset), "true_nT": float(truth_grid.flat[j]),
+        "amplitude_ratio": float((values.flat[k] - offset) / truth_grid.flat[j]),
+        "recovered_at_m": [float(gn.flat[k]), float(ge.flat[k])],
+        "true_at_m": [float(gn.flat[j]), float(ge.flat[j])],
+        "distance_m": float(math.hypot(gn.flat[k] - gn.flat[j], ge.flat[k] - ge.flat[j]))}
+    scores["sources_local_m"] = [
+        [float(v) for v in _truth_local(survey, np.float64(d["lat_deg"]),
+                                         np.float64(d["lon_deg"]), 0.0)[:2]]
+        for d in survey["dipoles"]] if survey["dipoles"] and "lat_deg" in survey["dipoles"][0] \
+        else [[float(d["north_m"]), float(d["east_m"])] for d in survey["dipoles"]]
+    result.truth_grid = truth_grid
+    return scores
+
+
+# --- products and report -------------------------------------------------------------------
+
+def _band_rms(result, series, mask):
+    from .tolles_lawson import bandpass
+    filtered = bandpass(series[mask], result.timing.rate_hz, result.tl.band)
+    return float(np.sqrt(np.mean(filtered ** 2)))
+
+
+def _compensation_figures(result):
+    """Improvement ratio and figure of merit in the box, ours (both term counts) and
+    deinterf's, on the same samples and the same band."""
+    from .tolles_lawson import figure_of_merit, improvement_ratio
+    box = (result.t >= result.box[0]) & (result.t <= result.box[1])
+    t = result.t[box]
+    band = result.tl.band
+    segments = _segments(*result.box)
+    rows = {}
+
+    def row(name, compensated):
+        rows[name] = {"improvement_ratio": float(improvement_ratio(
+                          t, result.raw[box], compensated[box], band)),
+                      "fom_nT": float(figure_of_merit(t, compensated[box], segments, band)),
+                      "band_rms_nT": _band_rms(result, compensated, box)}
+    row("uncompensated", result.raw)
+    row(f"maglog TL{result.tl.terms}", result.compensated)
+    other = result.raw - result.tl_other.predict(result.t, result.cosines, result.raw)
+    row(f"maglog TL{result.tl_other.terms}", other)
+    if result.deinterf is not None:
+        row(f"deinterf TL{result.tl.terms}", result.deinterf["compensated"])
+    return rows
+
+
+def summary(result):
+    """The report's figures as plain JSON values."""
+    from .pipeline import jsonable
+    on = result.on_lines()
+    out = {"log": result.log_name, "date": result.date,
+           "samples": int(len(result.t)), "samples_on_lines": int(on.sum()),
+           "cesium_timing": result.timing.as_dict(),
+           "box": {"start_utc": _tod(result.box[0]), "end_utc": _tod(result.box[1]),
+                   "seconds": result.box[1] - result.box[0], "source": result.box_source},
+           "tolles_lawson": result.tl.as_dict(),
+           "tolles_lawson_other": result.tl_other.as_dict(),
+           "compensation": _compensation_figures(result),
+           "deinterf": None if result.deinterf is None else {
+               k: v for k, v in result.deinterf.items() if k != "compensated"},
+           "lines": [_line_dict(line) for line in result.lines],
+           "levelling": result.levelling.as_dict(),
+           "diurnal": None if result.diurnal is None else {
+               "base_station": str(result.options.base_station),
+               "range_nT": [float(np.nanmin(result.diurnal)),
+                            float(np.nanmax(result.diurnal))]},
+           "anomaly_nT": {"min": float(np.nanmin(result.levelled[on])),
+                          "max": float(np.nanmax(result.levelled[on]))},
+           "grid": result.grid_info,
+           "vector_calibration": {
+               "rms_before_nT": result.calibration.summary()["rms_before_nT"],
+               "rms_after_nT": result.calibration.summary()["rms_after_nT"]},
+           "notes": list(result.notes), "times_s": result.times,
+           "options": {k: (str(v) if isinstance(v, Path) else v)
+                       for k, v in vars(result.options).items()}}
+    from .gridding import peak
+    out["peak"] = peak(result.grid).as_dict()
+    if result.scores:
+        out["truth"] = result.scores
+    return jsonable(out)
+
+
+def _line_dict(line):
+    return {"kind": line.kind, "index": line.index, "start_utc": _tod(line.start),
+            "end_utc": _tod(line.end), "seconds": line.end - line.start,
+            "course_deg": getattr(line, "course_deg", None)}
+
+
+def write_products(result, out_dir):
+    """The products and the report into folder ``out_dir`` (:data:`SURVEY_FILES`); returns
+    their paths by name. Files are written under temporary names and moved into place when
+    all are written, so a failure leaves an earlier product as it was."""
+    from .gridding import map_plot, to_utm, write_geotiff, write_netcdf
+    from .pipeline import _html, _stage, check_output_dir
+    out = check_output_dir(out_dir)
+    staged = {}
+    try:
+        with _warnings.catch_warnings(), np.errstate(all="ignore"):
+            _warnings.simplefilter("ignore")
+            figures = summary(result)
+            lat0, lon0 = result.track.origin
+            utm = to_utm(result.grid, lat0, lon0)
+            write_netcdf(utm, _stage(staged, out / "anomaly.nc"))
+            write_geotiff(utm, _stage(staged, out / "anomaly.tif"))
+            sources = figures.get("truth", {}).get("sources_local_m")
+            map_plot(result.grid, _flown(result), _stage(staged, out / "map.png"),
+                     sources=sources, title=f"Levelled total-field anomaly, {result.log_name}")
+            _plot_compensation(result, _stage(staged, out / "compensation.png"))
+            _plot_levelling(result, _stage(staged, out / "levelling.png"))
+            _write_samples(result, _stage(staged, out / "samples.csv"))
+            _stage(staged, out / "survey.json").write_text(
+                json.dumps(figures, indent=1, allow_nan=False) + "\n")
+            text = "\n".join(_report_lines(result, figures)) + "\n"
+            _stage(staged, out / "report.md").write_text(text, encoding="utf-8")
+            _stage(staged, out / "report.html").write_text(
+                _html(text, f"Survey of {result.log_name}"), encoding="utf-8")
+        for final, temp in staged.items():
+            os.replace(temp, final)
+    except OSError as error:
+        raise SurveyError(f"{out}: cannot write the products: "
+                          f"{error.strerror or error}") from None
+    finally:
+        for temp in staged.values():
+            try:
+                temp.unlink(missing_ok=True)
+            except OSError:
+                pass
+    return {name: out / name for name in SURVEY_FILES}
+
+
+def _flown(result):
+    """The flown lines as (north, east) arrays for the map."""
+    return [(result.track.north[(result.t >= line.start) & (result.t <= line.end)],
+             result.track.east[(result.t >= line.start) & (result.t <= line.end)])
+            for line in result.lines]
+
+
+def _write_samples(result, path):
+    on = result.on_lines()
+    line_of = np.full(len(result.t), "", dtype=object)
+    for line in result.lines:
+        line_of[(result.t >= line.start) & (result.t <= line.end)] = \
+            f"{line.kind}{line.index}"
+    tr = result.track
+    with open(path, "w", encoding="utf-8") as f:
+        f.write("t_utc_s,lat_deg,lon_deg,alt_m,north_m,east_m,raw_nT,compensated_nT,"
+                "igrf_nT,anomaly_nT,levelled_nT,line\n")
+        for i in range(len(result.t)):
+            f.write(f"{result.t[i]:.3f},{tr.lat[i]:.7f},{tr.lon[i]:.7f},{tr.alt[i]:.2f},"
+                    f"{tr.north[i]:.2f},{tr.east[i]:.2f},{result.raw[i]:.3f},"
+                    f"{result.compensated[i]:.3f},{result.igrf[i]:.3f},"
+                    f"{result.anomaly[i]:.3f},{result.levelled[i]:.3f},"
+                    f"{line_of[i] if on[i] else ''}\n")
+
+
+def _figure():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _plot_compensation(result, path):
+    from .tolles_lawson import bandpass
+    plt = _figure()
+    box = (result.t >= result.box[0]) & (result.t <= result.box[1])
+    t = result.t[box] - result.box[0]
+    rate, band = result.timing.rate_hz, result.tl.band
+    fig, ax = plt.subplots(figsize=(9, 4))
+    ax.plot(t, bandpass(result.raw[box], rate, band), lw=0.7, label="uncompensated")
+    if result.deinterf is not None:
+        ax.plot(t, bandpass(result.deinterf["compensated"][box], rate, band), lw=0.7,
+                label="deinterf")
+    ax.plot(t, bandpass(result.compensated[box], rate, band), lw=0.9,
+            label=f"maglog TL{result.tl.terms}", color="k")
+    ax.set_xlabel(f"seconds into the calibration box (from {_tod(result.box[0])} UTC)")
+    ax.set_ylabel(f"band-passed total field, {band[0]:.2g}-{band[1]:.2g} Hz (nT)")
+    ax.set_title("Tolles–Lawson compensation in the calibration box")
+    ax.legend()
+    fig.savefig(path, dpi=110, format="png")
+    plt.close(fig)
+
+
+def _plot_levelling(result, path):
+    plt = _figure()
+    lev = result.levelling.as_dict()
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    before = np.asarray([c[-1] for c in result.levelling.crossovers_before], float) \
+        if hasattr(result.levelling, "crossovers_before") else None
+    after = np.asarray([c[-1] for c in result.levelling.crossovers_after], float) \
+        if hasattr(result.levelling, "crossovers_after") else None
+    if before is not None and before.size:
+        ax.plot(before, "o", label="before levelling")
+    if after is not None and after.size:
+        ax.plot(after, "x", label="after levelling")
+    ax.set_xlabel("crossover")
+    ax.set_ylabel("line minus tie line (nT)")
+    ax.set_title(f"Crossovers: RMS {lev.get('rms_before_nT', float('nan')):.2f} -> "
+                 f"{lev.get('rms_after_nT', float('nan')):.2f} nT")
+    ax.legend()
+    fig.savefig(path, dpi=110, format="png")
+    plt.close(fig)
+
+
+def _report_lines(result, figures):
+    comp = figures["compensation"]
+    tlf = figures["tolles_lawson"]
+    lines_ = [line for line in result.lines if line.kind == "line"]
+    ties = [line for line in result.lines if line.kind == "tie"]
+    out = [f"# Survey of {result.log_name}", "",
+           f"- date {figures['date']}; {figures['samples']} cesium samples "
+           f"({figures['samples_on_lines']} on lines), timed by "
+           f"{result.timing.method} at {result.timing.rate_hz:.4f} Hz",
+           f"- {len(lines_)} lines and {len(ties)} tie lines found",
+           f"- calibration box {figures['box']['start_utc']}-{figures['box']['end_utc']} UTC "
+           f"({figures['box']['seconds']:.0f} s, {result.box_source})",
+           f"- vector magnetometer calibrated against the cesium: "
+           f"{figures['vector_calibration']['rms_before_nT']:.1f} -> "
+           f"{figures['vector_calibration']['rms_after_nT']:.2f} nT RMS", ""]
+    if result.notes:
+        out += ["## Notes", ""] + [f"- {note}" for note in result.notes] + [""]
+    out += ["## Tolles–Lawson compensation", "",
+            f"Fitted on the calibration box with {tlf.get('terms')} terms, band "
+            f"{result.tl.band[0]:.3g}-{result.tl.band[1]:.3g} Hz "
+            f"({tlf.get('band_source', 'chosen')}), ridge {tlf.get('ridge', '?')}. "
+            "Figures on the box's samples, band-passed in that band; the figure of merit "
+            "sums the peak-to-peak over the box's twelve parts (four headings × roll, pitch, "
+            "yaw).", ""]
+    scores = figures.get("truth", {})
+    head = "| series | improvement ratio | figure of merit (nT) | band RMS (nT) |"
+    rule = "|---|---:|---:|---:|"
+    if scores:
+        head += " residual against the truth (nT) |"
+        rule += "---:|"
+    out += [head, rule]
+    for name, row in comp.items():
+        cells = (f"| {name} | {row['improvement_ratio']:.2f} | {row['fom_nT']:.2f} | "
+                 f"{row['band_rms_nT']:.3f} |")
+        if scores:
+            key = {"uncompensated": "box_residual_raw_nT",
+                   f"maglog TL{result.tl.terms}": "box_residual_compensated_nT",
+                   f"deinterf TL{result.tl.terms}": "box_residual_deinterf_nT"}.get(name)
+            value = scores.get(key) if key else None
+            cells += f" {value:.3f} |" if value is not None else " |"
+        out.append(cells)
+    out.append("")
+    if result.deinterf is not None:
+        out += [f"deinterf ({result.deinterf.get('version', '')}) on the same samples: "
+                f"{result.deinterf.get('settings', '')}", ""]
+    if scores:
+        out += [f"The noise floor (the cesium's own noise) is {scores['noise_floor_nT']:.3f} nT: "
+                f"the compensated residual is {scores['box_residual_over_floor']:.1f} times it.",
+                ""]
+    lev = figures["levelling"]
+    out += ["## Georeferencing, IGRF, diurnal, levelling", "",
+            "Positions and altitudes from the GGA fixes interpolated to the cesium samples; "
+            "the IGRF total field at each removed.",
+            ("Diurnal: the base station's field (minus its median) removed, range "
+             f"{figures['diurnal']['range_nT'][0]:.2f} to {figures['diurnal']['range_nT'][1]:.2f}"
+             " nT." if figures["diurnal"] else
+             "Diurnal: no base-station file; levelling takes out what it can."),
+            f"Levelling on {lev.get('crossovers', '?')} crossovers: RMS "
+            f"{lev.get('rms_before_nT', float('nan')):.2f} nT before, "
+            f"{lev.get('rms_after_nT', float('nan')):.2f} nT after.", "",
+            "![levelling](levelling.png)", "", "![compensation](compensation.png)", ""]
+    pk = figures["peak"]
+    out += ["## Map", "", "![map](map.png)", "",
+            f"Anomaly along the lines {figures['anomaly_nT']['min']:.1f} to "
+            f"{figures['anomaly_nT']['max']:.1f} nT; grid: "
+            + ", ".join(f"{k} {v}" for k, v in figures["grid"].items()
+                        if not isinstance(v, (list, dict))) + ".",
+            f"Largest |anomaly| on the grid: {pk}.", ""]
+    if scores:
+        p = scores["peak"]
+        out += ["## Against the scenario's truth", "",
+                f"- along the lines: levelled anomaly RMS {scores['line_anomaly_rms_nT']:.2f} nT "
+                f"about its mean (before levelling {scores['line_anomaly_unlevelled_rms_nT']:.2f} "
+                f"nT); true anomaly {scores['true_anomaly_range_nT'][0]:.1f} to "
+                f"{scores['true_anomaly_range_nT'][1]:.1f} nT",
+                f"- grid: RMS {scores['grid_rms_nT']:.2f} nT against the true anomaly on its "
+                f"nodes (offset {scores['grid_offset_nT']:.2f} nT)",
+                f"- peak (above the grid's offset): {p['recovered_nT']:.1f} nT recovered against {p['true_nT']:.1f} nT "
+                f"true (ratio {p['amplitude_ratio']:.3f}), {p['distance_m']:.1f} m apart", ""]
+    out += ["## Files", "", "anomaly.nc (NetCDF, UTM), anomaly.tif (GeoTIFF, UTM), "
+            "samples.csv (every cesium sample through each step), survey.json (these "
+            "figures).", ""]
+    return out
