@@ -185,3 +185,49 @@ def test_a_missing_base_station_file_is_said_before_any_work(flight, tmp_path):
 def test_bad_options(options, message):
     with pytest.raises(SurveyError, match=message):
         sv.SurveyOptions(**options).check()
+
+
+# --- the command line ---------------------------------------------------------------------
+
+def test_cli_surveys_a_log_with_its_truth_and_base_beside_it(flight, tmp_path, capsys):
+    from maglog.cli.main import main
+    out = tmp_path / "out"
+    assert main(["survey", str(flight["log"]), "-o", str(out), "--no-deinterf",
+                 "--terms", "16"]) == 0
+    printed = capsys.readouterr().out
+    assert "improvement ratio" in printed and "map.png" in printed
+    figures = json.loads((out / "survey.json").read_text())
+    assert figures["tolles_lawson"]["terms"] == 16
+    assert figures["diurnal"] is not None            # base.csv beside the log was used
+    assert figures["truth"]["peak"]["distance_m"] <= 1.5 * figures["grid"]["spacing_m"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--band", "0.5,0.1"], "expected 0 < LOW < HIGH"),
+    (["--box", "10:02:00-10:01:00"], "must end after it starts"),
+    (["--box", "25:00:00-26:00:00"], "expected a UTC time"),
+    (["--ridge", "-3"], "expected auto or a number"),
+    (["--seeds", "4-1"], "expected seeds"),
+    (["--terms", "17"], "invalid choice"),
+])
+def test_cli_refuses_bad_options(argv, message, tmp_path, capsys):
+    from maglog.cli.main import main
+    with pytest.raises(SystemExit) as exit_:
+        main(["survey", "card.img", "-o", str(tmp_path)] + argv)
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["nothing.img"], "nothing.img: no such file"),
+    ([], "give at least one card image"),
+    (["--seeds", "1-2", "x.img"], "--seeds goes with --scenario"),
+])
+def test_cli_errors_are_one_line(argv, message, tmp_path, capsys, monkeypatch):
+    from maglog.cli.main import main
+    monkeypatch.chdir(tmp_path)
+    if "x.img" in argv:
+        (tmp_path / "x.img").write_bytes(b"")
+    assert main(["survey", "-o", str(tmp_path / "out")] + argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
