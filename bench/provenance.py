@@ -996,6 +996,85 @@ def calib_parse(report):
             f"{report['one_hour']['wall']['repeats']} repeats each."]
 
 
+def _survey_rows(report, key):
+    return [f["figures"]["compensation"][key] for f in report["flights"]
+            if key in f["figures"]["compensation"]]
+
+
+def survey_compensation(report):
+    flights = report["flights"]
+    names = list(flights[0]["figures"]["compensation"])
+    truth_key = {"uncompensated": "box_residual_raw_nT",
+                 "maglog TL18": "box_residual_compensated_nT",
+                 "deinterf TL18": "box_residual_deinterf_nT"}
+    rows = []
+    for name in names:
+        cells = _survey_rows(report, name)
+        ir = [c["improvement_ratio"] for c in cells]
+        fom = [c["fom_nT"] for c in cells]
+        key = truth_key.get(name)
+        res = [f["figures"]["truth"][key] for f in flights] if key else None
+        rows.append([name, f"{statistics.median(ir):.1f} ({min(ir):.1f}–{max(ir):.1f})",
+                     f"{statistics.median(fom):.2f}",
+                     f"{statistics.median(res):.3f} ({min(res):.3f}–{max(res):.3f})"
+                     if res else "–"])
+    floor = flights[0]["figures"]["truth"]["noise_floor_nT"]
+    return table(["series", "improvement ratio, median (range)", "figure of merit (nT), median",
+                  "residual against the truth in the box (nT), median (range)"], rows,
+                 "lrrr") + [
+        "", f"{len(flights)} flights (seeds {', '.join(str(f['seed']) for f in flights)}); "
+            f"noise floor (the cesium's own noise) {floor:g} nT. The band of every figure is "
+            "maglog's (chosen from the manoeuvres: "
+            + ", ".join(f"{f['figures']['tolles_lawson']['band_hz'][0]:.3g}–"
+                        f"{f['figures']['tolles_lawson']['band_hz'][1]:.3g} Hz"
+                        for f in flights)
+            + "); deinterf fits in its own fixed 0.1–0.6 Hz band with RidgeCV."]
+
+
+def survey_map(report):
+    rows = []
+    for f in report["flights"]:
+        fig = f["figures"]
+        truth, lev, lag = fig["truth"], fig["levelling"], fig.get("lag") or {}
+        rows.append([str(f["seed"]), f"{lag.get('lag_s', float('nan')):.3f} s",
+                     f"{lev['rms_before_nT']:.3f} → {lev['rms_after_nT']:.3f}",
+                     f"{truth['line_anomaly_rms_nT']:.2f}", f"{truth['grid_rms_nT']:.2f}",
+                     f"{truth['peak']['recovered_nT']:.1f} / {truth['peak']['true_nT']:.1f}",
+                     f"{truth['peak']['distance_m']:.1f} m"])
+    return table(["seed", "lag", "crossovers (nT RMS)", "lines vs truth (nT RMS)",
+                  "grid vs truth (nT RMS)", "peak: recovered / true (nT)", "peak distance"],
+                 rows, "lrrrrrr")
+
+
+def survey_speed(report):
+    per, batch = report["per_hour"], report["batch"]
+    steps = {}
+    for f in report["flights"]:
+        for k, v in f["steps_s"].items():
+            steps.setdefault(k, []).append(v)
+    step_text = ", ".join(f"{k.removesuffix('_s').replace('_', ' ')} "
+                          f"{statistics.median(v):.1f} s" for k, v in steps.items())
+    return table(["what", "figure"], [
+        ["card to products (reduce), per flight-hour", f"{per['reduce_s_per_flight_hour']:.0f} s"],
+        ["scenario build + model backend (fly), per flight-hour",
+         f"{per['fly_s_per_flight_hour']:.0f} s"],
+        ["one 13.3-min flight reduced, median", f"{per['median_reduce_s']:.1f} s"],
+        [f"{batch['jobs']} seeds flown and reduced serially",
+         f"{batch['serial_fly_reduce_wall_s']:.1f} s"],
+        [f"the same on Dask, {batch['workers']} local workers",
+         f"{batch['dask_fly_reduce_wall_s']:.1f} s"],
+        ["speed-up of the whole batch path", f"{batch['fly_reduce_speedup']:.2f}×"],
+        [f"{batch['jobs']} cards reduced serially", f"{batch['serial_wall_s']:.1f} s"],
+        [f"the same on Dask, {batch['workers']} local workers",
+         f"{batch['dask_wall_s']:.1f} s"],
+        ["speed-up of the reduction alone", f"{batch['speedup']:.2f}×"],
+        ["Dask maps and samples identical to the serial ones (digests)",
+         "yes" if batch["identical"] else "**no**"],
+    ], "lr") + ["", f"Median per step of one reduction: {step_text}. The Dask wall includes "
+                    "starting the cluster and each worker's first imports and numba compiles; "
+                    f"{report['machine']['nproc']} cores."]
+
+
 #: name -> (JSON, renderer)
 BLOCKS = {
     "machine": ("bench/results/synth.json", machine),
@@ -1026,6 +1105,9 @@ BLOCKS = {
     "calib-heldout-timing": ("bench/results/calib_heldout.json", calib_heldout_timing),
     "calib-heldout-hours": ("bench/results/calib_heldout.json", calib_heldout_hours),
     "calib-parse": ("bench/results/calib_parse.json", calib_parse),
+    "survey-compensation": ("bench/results/survey.json", survey_compensation),
+    "survey-map": ("bench/results/survey.json", survey_map),
+    "survey-speed": ("bench/results/survey.json", survey_speed),
 }
 
 

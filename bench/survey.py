@@ -14,12 +14,14 @@ of merit are computed for all in maglog's band; the residual is the compensated 
 against the truth's total field in the box (RMS about its mean), beside the noise floor
 (the cesium's own noise). Then the map's figures against the truth.
 
-Time: each card is reduced serially in this process (``survey_card`` + ``write_products``:
-everything from the card image to the written products), the wall time divided by the
-flight's hours; the flying (scenario build + model backend) is timed apart. Then the same
-cards are reduced on a local Dask cluster of ``--workers`` processes
-(``calib.batch.run_batch``) and the speed-up is the serial wall over the Dask wall
-(cluster start included); the digests of the two runs' maps must agree.
+Time: each seed is flown (scenario build + model backend) and its card reduced
+(``survey_card`` + ``write_products``: everything from the card image to the written
+products) serially in this process; the reduction's wall time over the flight's hours is the
+time per flight-hour. Then the batch path on a local Dask cluster of ``--workers``
+processes (``calib.batch.run_batch``, cluster start included), twice: the whole path per
+seed (fly + reduce, as ``maglog survey --scenario survey --seeds 1-N``) against the serial
+fly + reduce, and the reduction alone of the same cards against the serial reductions.
+The digests of the maps and samples of all three runs must agree.
 
 Run from the repository root: ``.venv/bin/python bench/survey.py`` (``--help``).
 """
@@ -86,21 +88,35 @@ def main(argv=None):
             flight.update(reduce_serial(folder))
             print(f"seed {seed}: reduced in {flight['wall_s']:.1f} s", flush=True)
             flights.append(flight)
-        jobs = [{"card": str(scratch / f"seed-{f['seed']}" / "card.img"),
-                 "out": str(scratch / f"seed-{f['seed']}" / "dask"),
-                 "options": {"base_station": str(scratch / f"seed-{f['seed']}" / "base.csv"),
-                             "truth": str(scratch / f"seed-{f['seed']}" / "truth.json")}}
-                for f in flights]
+        card_jobs = [{"card": str(scratch / f"seed-{f['seed']}" / "card.img"),
+                      "out": str(scratch / f"seed-{f['seed']}" / "dask"),
+                      "options": {"base_station": str(scratch / f"seed-{f['seed']}" / "base.csv"),
+                                  "truth": str(scratch / f"seed-{f['seed']}" / "truth.json")}}
+                     for f in flights]
+        fly_jobs = [{"scenario": "survey", "seed": f["seed"],
+                     "out": str(scratch / "dask-fly" / f"seed-{f['seed']}")} for f in flights]
         started = time.perf_counter()
-        records = run_batch(jobs, workers=args.workers)
+        fly_records = run_batch(fly_jobs, workers=args.workers)
+        fly_wall = time.perf_counter() - started
+        print(f"Dask fly + reduce: {fly_wall:.1f} s", flush=True)
+        started = time.perf_counter()
+        records = run_batch(card_jobs, workers=args.workers)
         dask_wall = time.perf_counter() - started
+        print(f"Dask reduce: {dask_wall:.1f} s", flush=True)
+        records = records + fly_records
     if not all(r["ok"] for r in records):
         raise SystemExit(f"a Dask job failed: {[r['error'] for r in records]}")
     serial_wall = sum(f["wall_s"] for f in flights)
+    serial_fly = sum(f["wall_s"] + f["build_s"] + f["simulate_s"] for f in flights)
     hours = sum(f["flight_s"] for f in flights) / 3600
-    batch = {"workers": args.workers, "jobs": len(jobs), "serial_wall_s": serial_wall,
-             "dask_wall_s": dask_wall, "speedup": serial_wall / dask_wall,
-             "identical": all(r["digest"] == f["digest"] for r, f in zip(records, flights)),
+    n = len(flights)
+    batch = {"workers": args.workers, "jobs": n,
+             "serial_wall_s": serial_wall, "dask_wall_s": dask_wall,
+             "speedup": serial_wall / dask_wall,
+             "serial_fly_reduce_wall_s": serial_fly, "dask_fly_reduce_wall_s": fly_wall,
+             "fly_reduce_speedup": serial_fly / fly_wall,
+             "identical": all(r["digest"] == f["digest"]
+                              for r, f in zip(records, flights + flights)),
              "dask_job_wall_s": [r["wall_s"] for r in records]}
     per_hour = {"reduce_s_per_flight_hour": serial_wall / hours,
                 "fly_s_per_flight_hour": sum(f["build_s"] + f["simulate_s"]
@@ -108,7 +124,8 @@ def main(argv=None):
                 "flight_hours": hours,
                 "median_reduce_s": statistics.median(f["wall_s"] for f in flights)}
     print(f"reduce: {per_hour['reduce_s_per_flight_hour']:.0f} s per flight-hour; "
-          f"Dask speed-up on {args.workers} workers {batch['speedup']:.2f} "
+          f"Dask speed-up on {args.workers} workers: fly + reduce "
+          f"{batch['fly_reduce_speedup']:.2f}, reduce {batch['speedup']:.2f} "
           f"(identical: {batch['identical']})")
     write_report(args.output, "survey", argv, load_start,
                  packages("numpy", "scipy", "verde", "harmonica", "deinterf", "dask",

@@ -887,6 +887,15 @@ def _html(markdown_text, title):
     return _PAGE.format(title=html.escape(title), body=md.convert(markdown_text))
 
 
+def _discard(staged):
+    """Remove the staged temporary files that were not moved into place."""
+    for temp in staged.values():
+        try:
+            temp.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
 def _stage(staged, final):
     """A temporary file beside ``final`` to write into; moved over ``final`` when the whole
     report is written (see :func:`write_report`)."""
@@ -1009,10 +1018,6 @@ def write_report(run, out_dir):
         where = Path(error.filename).parent if error.filename else out
         raise ReportError(f"{where}: cannot write the report: {_reason(error)}") from None
     finally:
-        for temp in staged.values():
-            try:
-                temp.unlink(missing_ok=True)
-            except OSError:
-                pass
+        _discard(staged)
     return {"markdown": out / "report.md", "html": out / "report.html",
             "json": out / "parameters.json", **files}

@@ -274,8 +274,11 @@ def survey_card(path, options=None):
     levelled, gridded anomaly (module docstring). Bad input ends in a :class:`SurveyError`
     (or the card reader's and calibration's own errors, which the caller reports the same
     way). Nothing is printed."""
+    from threadpoolctl import threadpool_limits
     options = (options or SurveyOptions()).check()
-    with _warnings.catch_warnings(), np.errstate(all="ignore"):
+    # One BLAS thread: a threaded BLAS sums in an order that depends on its thread count,
+    # and a Dask worker runs with one; the same card must give the same map anywhere.
+    with _warnings.catch_warnings(), np.errstate(all="ignore"), threadpool_limits(1):
         _warnings.simplefilter("ignore")
         return _survey(Path(path), options)
 
@@ -608,6 +611,7 @@ def summary(result):
            "deinterf": None if result.deinterf is None else {
                k: v for k, v in result.deinterf.items() if k != "compensated"},
            "lines": [_line_dict(line) for line in result.lines],
+           "lag": {k: v for k, v in result.lag.items() if k != "scan"},
            "levelling": result.levelling.as_dict(),
            "diurnal": None if result.diurnal is None else {
                "base_station": str(result.options.base_station),
@@ -640,7 +644,7 @@ def write_products(result, out_dir):
     their paths by name. Files are written under temporary names and moved into place when
     all are written, so a failure leaves an earlier product as it was."""
     from .gridding import map_plot, to_utm, write_geotiff, write_netcdf
-    from .pipeline import _html, _stage, check_output_dir
+    from .pipeline import _discard, _html, _stage, check_output_dir
     out = check_output_dir(out_dir)
     staged = {}
     try:
@@ -669,11 +673,7 @@ def write_products(result, out_dir):
         raise SurveyError(f"{out}: cannot write the products: "
                           f"{error.strerror or error}") from None
     finally:
-        for temp in staged.values():
-            try:
-                temp.unlink(missing_ok=True)
-            except OSError:
-                pass
+        _discard(staged)
     return {name: out / name for name in SURVEY_FILES}
 
 
@@ -808,6 +808,9 @@ def _report_lines(result, figures):
              f"{figures['diurnal']['range_nT'][0]:.2f} to {figures['diurnal']['range_nT'][1]:.2f}"
              " nT." if figures["diurnal"] else
              "Diurnal: no base-station file; levelling takes out what it can."),
+            (f"Lag correction: positions taken {result.lag['lag_s']:.3f} s after the "
+             f"samples' times ({result.lag['source']}: the lag that minimises the "
+             "crossovers; the GGA line arrives after its fix)." if result.lag else ""),
             f"Levelling on {lev.get('crossovers', '?')} crossovers: RMS "
             f"{lev.get('rms_before_nT', float('nan')):.2f} nT before, "
             f"{lev.get('rms_after_nT', float('nan')):.2f} nT after.", "",
