@@ -93,6 +93,11 @@ def survey_job(job):
         record.update(ok=True, digest=product_digest(result), figures=summary(result))
     except (SurveyError, CardError, CalibrationError) as error:
         record["error"] = str(error)
+    except OSError as error:
+        record["error"] = f"{error.filename or out}: {error.strerror or error}"
+    except Exception as error:           # noqa: BLE001 - one job's bug must not end a batch
+        record["error"] = (f"unexpected {type(error).__name__} (a bug in maglog; please "
+                           f"report it with this card): {error}")
     record["wall_s"] = time.perf_counter() - started
     return record
 

@@ -293,7 +293,7 @@ def _survey(path, options):
     from .diurnal import diurnal_correction, read_base_station
     from .georef import find_lines, georeference, igrf_total
     from .gridding import grid_anomaly, grid_summary
-    from .levelling import crossovers, level
+    from .levelling import Levelling, crossovers, level
     from .pipeline import calibrate_card
     from .scalar import apply_scalar
 
@@ -383,7 +383,18 @@ def _survey(path, options):
     times["lag_s"] = _clock() - mark
     mark = _clock()
     cross = crossovers(lines, t, track.north, track.east, anomaly)
-    levelling = level(lines, t, anomaly, cross, order=options.level_order)
+    if cross:
+        levelling = level(lines, t, anomaly, cross, order=options.level_order)
+    else:
+        # No tie line crosses the lines: the map is made unlevelled, and says so.
+        levelling = Levelling(values=anomaly.copy(), correction=np.zeros(len(t)),
+                              offsets=np.zeros(len(lines)), slopes=np.zeros(len(lines)),
+                              order=options.level_order, rms_before=math.nan,
+                              rms_after=math.nan, residuals=np.zeros(0), n_crossovers=0,
+                              unlevelled=[k for k, line in enumerate(lines)
+                                          if line.kind == "line"], lines=list(lines))
+        notes.append("no tie line crosses the survey lines: the map is not levelled (the "
+                     "lag is not corrected either)")
     levelled = levelling.values
     times["levelling_s"] = _clock() - mark
     mark = _clock()
@@ -395,7 +406,7 @@ def _survey(path, options):
                         spacing_m=options.spacing_m, method=options.grid_method)
     times["gridding_s"] = _clock() - mark
     lag_record = {"lag_s": lag, "source": "given" if options.lag_s is not None else
-                  "crossovers", "scan": lag_table}
+                  "crossovers" if cross else "none", "scan": lag_table}
     result = SurveyResult(
         log_name=parsed.name, date=date, options=options, timing=timing, t=t, raw=raw,
         cosines=cosines, box=box, box_source=box_source, tl=chosen, tl_other=other,
@@ -744,9 +755,12 @@ def _plot_levelling(result, path):
         ax.plot(after, "x", label="after levelling")
     ax.set_xlabel("crossover")
     ax.set_ylabel("line minus tie line (nT)")
-    ax.set_title(f"Crossovers: RMS {lev.get('rms_before_nT', float('nan')):.2f} -> "
-                 f"{lev.get('rms_after_nT', float('nan')):.2f} nT")
-    ax.legend()
+    if lev["crossovers"]:
+        ax.set_title(f"Crossovers: RMS {lev['rms_before_nT']:.2f} -> "
+                     f"{lev['rms_after_nT']:.2f} nT")
+        ax.legend()
+    else:
+        ax.set_title("No crossovers: not levelled")
     fig.savefig(path, dpi=110, format="png")
     plt.close(fig)
 
@@ -771,7 +785,9 @@ def _report_lines(result, figures):
     out += ["## Tolles–Lawson compensation", "",
             f"Fitted on the calibration box with {tlf.get('terms')} terms, band "
             f"{result.tl.band[0]:.3g}-{result.tl.band[1]:.3g} Hz "
-            f"({tlf.get('band_source', 'chosen')}), ridge {tlf.get('ridge', '?')}. "
+            f"({'given' if result.options.band else 'chosen from the manoeuvres'}), ridge "
+            f"{tlf['ridge_alpha']:.3g} "
+            f"({'by blocked cross-validation' if tlf['ridge_auto'] else 'given'}). "
             "Figures on the box's samples, band-passed in that band; the figure of merit "
             "sums the peak-to-peak over the box's twelve parts (four headings × roll, pitch, "
             "yaw).", ""]
@@ -794,8 +810,11 @@ def _report_lines(result, figures):
         out.append(cells)
     out.append("")
     if result.deinterf is not None:
+        settings = result.deinterf.get("settings", {})
+        text = "; ".join(f"{k.replace('_', ' ')} {v}" for k, v in settings.items()) \
+            if isinstance(settings, dict) else str(settings)
         out += [f"deinterf ({result.deinterf.get('version', '')}) on the same samples: "
-                f"{result.deinterf.get('settings', '')}", ""]
+                f"{text}.", ""]
     if scores:
         out += [f"The noise floor (the cesium's own noise) is {scores['noise_floor_nT']:.3f} nT: "
                 f"the compensated residual is {scores['box_residual_over_floor']:.1f} times it.",
@@ -807,13 +826,18 @@ def _report_lines(result, figures):
             ("Diurnal: the base station's field (minus its median) removed, range "
              f"{figures['diurnal']['range_nT'][0]:.2f} to {figures['diurnal']['range_nT'][1]:.2f}"
              " nT." if figures["diurnal"] else
-             "Diurnal: no base-station file; levelling takes out what it can."),
+             "Diurnal: no base-station file; levelling takes out what it can."
+             if lev["crossovers"] else
+             "Diurnal: no base-station file and no tie lines: it stays in the map."),
             (f"Lag correction: positions taken {result.lag['lag_s']:.3f} s after the "
-             f"samples' times ({result.lag['source']}: the lag that minimises the "
-             "crossovers; the GGA line arrives after its fix)." if result.lag else ""),
-            f"Levelling on {lev.get('crossovers', '?')} crossovers: RMS "
-            f"{lev.get('rms_before_nT', float('nan')):.2f} nT before, "
-            f"{lev.get('rms_after_nT', float('nan')):.2f} nT after.", "",
+             "samples' times (" + ("given" if result.lag["source"] == "given" else
+                                   "the lag that minimises the crossovers; the GGA line "
+                                   "arrives after its fix") + ")."
+             if result.lag["source"] != "none" else
+             "Lag correction: none (no crossovers to estimate it from)."),
+            (f"Levelling on {lev['crossovers']} crossovers: RMS "
+             f"{lev['rms_before_nT']:.2f} nT before, {lev['rms_after_nT']:.2f} nT after."
+             if lev["crossovers"] else "Not levelled: no tie line crosses the lines."), "",
             "![levelling](levelling.png)", "", "![compensation](compensation.png)", ""]
     pk = figures["peak"]
     out += ["## Map", "", "![map](map.png)", "",

@@ -131,8 +131,8 @@ def _row(record):
     truth = figures.get("truth", {})
     return [record["name"],
             f"{ours.get('improvement_ratio', float('nan')):.1f}",
-            f"{lev.get('rms_before_nT', float('nan')):.2f} -> "
-            f"{lev.get('rms_after_nT', float('nan')):.2f}",
+            f"{lev['rms_before_nT']:.2f} -> {lev['rms_after_nT']:.2f}"
+            if lev.get("crossovers") else "none",
             f"{peak.get('amplitude_nT', peak.get('value_nT', float('nan'))):.1f}",
             f"{truth['grid_rms_nT']:.2f}" if truth else "-",
             f"{record['wall_s']:.0f}"]
@@ -167,12 +167,12 @@ def _cmd_survey(args):
             print(f"{record['name']}: report {Path(record['out']) / 'report.md'}, map "
                   f"{Path(record['out']) / 'map.png'}")
     failed = [r for r in records if not r["ok"]]
+    if failed and len(jobs) == 1:
+        raise CliError(failed[0]["error"])
     for record in failed:
         print(f"maglog: error: {record['name']}: {record['error']}", file=sys.stderr)
     if len(jobs) > 1:
         print(f"batch: {out / 'batch.json'}")
-    if failed and len(jobs) == 1:
-        raise CliError(failed[0]["error"])
     if failed:
         raise CliError(f"{len(failed)} of {len(records)} jobs failed (see above)")
 

@@ -144,16 +144,35 @@ def test_one_line_only_is_refused(flight, tmp_path):
     truth = json.loads(flight["truth"].read_text())
     first = next(line for line in truth["survey"]["lines"] if line["kind"] == "line")
     second = [line for line in truth["survey"]["lines"] if line["kind"] == "line"][1]
-    cut_s = (first["end_s"] + second["start_s"]) / 2
+    log = _log_until(flight, tmp_path, (first["end_s"] + second["start_s"]) / 2)
+    with pytest.raises(SurveyError, match="one survey line only"):
+        sv.survey_card(log, sv.SurveyOptions(compare_deinterf=False))
+
+
+def _log_until(flight, tmp_path, seconds):
+    """The flight's log cut at ``seconds`` after power-up (a card pulled early)."""
+    truth = json.loads(flight["truth"].read_text())
     data = flight["log"].read_bytes()
     parsed = parse_log(data)
     day = truth["timestamp"][11:19]
     offset = sum(int(x) * f for x, f in zip(day.split(":"), (3600, 60, 1)))
-    cut_line = int(parsed.mag.line[np.searchsorted(parsed.mag.t, offset + cut_s)])
+    cut_line = int(parsed.mag.line[np.searchsorted(parsed.mag.t, offset + seconds)])
     log = tmp_path / "LOG00001.TXT"
     log.write_bytes(b"".join(data.splitlines(keepends=True)[:cut_line]))
-    with pytest.raises(SurveyError, match="one survey line only"):
-        sv.survey_card(log, sv.SurveyOptions(compare_deinterf=False))
+    return log
+
+
+def test_without_tie_lines_the_map_is_made_unlevelled(flight, tmp_path):
+    truth = json.loads(flight["truth"].read_text())
+    first_tie = next(line for line in truth["survey"]["lines"] if line["kind"] == "tie")
+    log = _log_until(flight, tmp_path, first_tie["start_s"] - 1.0)
+    result = sv.survey_card(log, sv.SurveyOptions(compare_deinterf=False))
+    assert [line.kind for line in result.lines].count("tie") == 0
+    assert result.levelling.n_crossovers == 0 and result.lag["source"] == "none"
+    assert any("not levelled" in note for note in result.notes)
+    assert np.array_equal(result.levelled, result.anomaly, equal_nan=True)
+    text = "\n".join(sv._report_lines(result, sv.summary(result)))
+    assert "Not levelled: no tie line crosses the lines." in text
 
 
 def test_a_base_station_gap_is_named(flight, tmp_path):
