@@ -106,6 +106,11 @@ class SurveyOptions:
         if not self.max_base_gap_s > 0:
             raise SurveyError(f"the base station's largest gap must be > 0 s, not "
                               f"{self.max_base_gap_s!r}")
+        if self.lag_s is not None and not (isinstance(self.lag_s, (int, float))
+                                           and math.isfinite(self.lag_s)
+                                           and abs(self.lag_s) <= 10):
+            raise SurveyError(f"the lag must be a number of seconds within -10..10, not "
+                              f"{self.lag_s!r}")
         if self.box is not None and not self.box[0] < self.box[1]:
             raise SurveyError(f"the calibration box must end after it starts, not "
                               f"{self.box[0]:g}-{self.box[1]:g}")

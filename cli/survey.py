@@ -82,6 +82,7 @@ def _options(args):
     return {"terms": args.terms, "band": args.band, "ridge": args.ridge,
             "max_base_gap_s": args.max_base_gap, "box": args.box, "spacing_m": args.spacing,
             "grid_method": args.grid, "level_order": args.level, "seed": args.seed,
+            "lag_s": args.lag,
             "compare_deinterf": not args.no_deinterf}
 
 
@@ -225,6 +226,9 @@ def register(commands):
     survey.add_argument("--level", type=int, choices=(0, 1), default=0,
                         help="levelling: 0 a constant per line, 1 a linear drift per line "
                              "(default: %(default)s)")
+    survey.add_argument("--lag", type=_float_in(-10, 10), default=None, metavar="S",
+                        help="the positions' lag behind the samples' times, s (default: "
+                             "estimated from the crossovers)")
     survey.add_argument("--seed", type=_int_in(0, SEED_MAX), default=0,
                         help="the vector calibration's PSO seed (default: 0)")
     survey.add_argument("--no-deinterf", action="store_true",

@@ -200,6 +200,7 @@ def test_a_missing_base_station_file_is_said_before_any_work(flight, tmp_path):
     ({"ridge": -1.0}, "ridge"),
     ({"level_order": 2}, "levelling order"),
     ({"grid_method": "kriging"}, "grid method"),
+    ({"lag_s": float("inf")}, "lag"),
 ])
 def test_bad_options(options, message):
     with pytest.raises(SurveyError, match=message):
@@ -212,12 +213,13 @@ def test_cli_surveys_a_log_with_its_truth_and_base_beside_it(flight, tmp_path, c
     from maglog.cli.main import main
     out = tmp_path / "out"
     assert main(["survey", str(flight["log"]), "-o", str(out), "--no-deinterf",
-                 "--terms", "16"]) == 0
+                 "--terms", "16", "--lag", "0.25"]) == 0
     printed = capsys.readouterr().out
     assert "improvement ratio" in printed and "map.png" in printed
     figures = json.loads((out / "survey.json").read_text())
     assert figures["tolles_lawson"]["terms"] == 16
     assert figures["diurnal"] is not None            # base.csv beside the log was used
+    assert figures["lag"] == {"lag_s": 0.25, "source": "given"}
     assert figures["truth"]["peak"]["distance_m"] <= 1.5 * figures["grid"]["spacing_m"]
 
 
@@ -228,6 +230,7 @@ def test_cli_surveys_a_log_with_its_truth_and_base_beside_it(flight, tmp_path, c
     (["--ridge", "-3"], "expected auto or a number"),
     (["--seeds", "4-1"], "expected seeds"),
     (["--terms", "17"], "invalid choice"),
+    (["--lag", "nan"], "expected a number in [-10, 10]"),
 ])
 def test_cli_refuses_bad_options(argv, message, tmp_path, capsys):
     from maglog.cli.main import main
