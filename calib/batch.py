@@ -133,7 +133,7 @@ def run_batch(jobs, *, scheduler=None, workers=2, serial=False):
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError) as error:
+        except (OSError, TimeoutError, ValueError) as error:
             raise SurveyError(f"cannot reach the Dask scheduler at {scheduler}: "
                               f"{error}") from None
         cluster = None
@@ -145,7 +145,17 @@ def run_batch(jobs, *, scheduler=None, workers=2, serial=False):
         client = Client(cluster)
     try:
         futures = client.map(survey_job, jobs, pure=False)
-        return client.gather(futures)
+        records = []
+        for job, future in zip(jobs, futures):
+            try:
+                records.append(future.result())
+            except Exception as error:      # noqa: BLE001 - a lost worker ends its job only
+                out = Path(job["out"])
+                records.append({"name": job.get("name") or out.name, "out": str(out),
+                                "ok": False, "digest": None, "figures": None, "wall_s": 0.0,
+                                "error": f"the Dask worker failed ({type(error).__name__}: "
+                                         f"{error})"})
+        return records
     finally:
         client.close()
         if cluster is not None:

@@ -167,14 +167,23 @@ def cesium_times(parsed, *, cesium_baud=CESIUM_BAUD, mag_baud=MAG_BAUD):
         coef, *_ = np.linalg.lstsq(a, tb, rcond=None)
         fitted = a @ coef
         residual = float(np.sqrt(np.mean((tb - fitted) ** 2)))
-        period = float(coef[1])
+        if not coef[1] > 0:
+            break
+        # Unroll the count again against the refined line (a step misrounded against the
+        # first, median period is put right), as long as it stays increasing.
+        again = np.round((tb - coef[0]) / coef[1])
+        again = again - again[0]
+        if np.all(np.diff(again) >= 1):
+            k = again
+    period = float(coef[1])
     drops = int(k[-1] + 1 - len(k))
-    if residual < period / 3:
+    if period > 0 and residual < period / 3:
         t[inside] = fitted - lag
         method = "rate"
     else:
         t[inside] = tb - lag
         method = "bracketed"
+        period = float(np.median(steps))
     return CesiumTiming(t=t, method=method, rate_hz=1.0 / period, residual_s=residual,
                         drops=drops, lag_s=lag)
 
@@ -306,7 +315,11 @@ def _survey(path, options):
     mark = _clock()
     if options.base_station is not None:
         _check_path(options.base_station, "base-station file")
+    if options.truth is not None:
+        read_truth(options.truth)
     run = calibrate_card(path, ref="cesium", method="pso", seed=options.seed)
+    if run.parsed.date is None:
+        raise SurveyError(f"{run.parsed.name}: no ZDA date in the log: IGRF needs the date")
     times["vector_calibration_s"] = _clock() - mark
     parsed = run.parsed
     notes = list(run.warnings)
@@ -314,7 +327,11 @@ def _survey(path, options):
     mark = _clock()
     timing = cesium_times(parsed)
     ces = parsed.cesium
-    valid = np.isfinite(timing.t) & (ces.field > 1_000) & (ces.field < 1_000_000)
+    in_range = (ces.field > 1_000) & (ces.field < 1_000_000)
+    if not in_range.all():
+        notes.append(f"{int((~in_range).sum())} cesium readings outside 1,000-1,000,000 nT "
+                     "(no lock) left out")
+    valid = np.isfinite(timing.t) & in_range
     t, raw = timing.t[valid], ces.field[valid]
     if timing.method != "rate":
         notes.append(f"cesium samples timed by the magnetometer lines around them (their "
@@ -323,8 +340,14 @@ def _survey(path, options):
     ok = np.isfinite(mag.t)
     vectors = apply_scalar(run.result.K, run.result.c, mag.b[ok])
     vt = mag.t[ok]
+    if not np.all(np.diff(vt) > 0):
+        raise SurveyError(f"{parsed.name}: the magnetometer's times do not increase (a "
+                          "sensor restart?): its samples cannot be matched to the cesium's")
     vec = np.column_stack([np.interp(t, vt, vectors[:, k], left=np.nan, right=np.nan)
                            for k in range(3)])
+    # No direction across a gap in the magnetometer's samples (more than 3 periods).
+    right = np.clip(np.searchsorted(vt, t), 1, len(vt) - 1)
+    vec[vt[right] - vt[right - 1] > 3 * float(np.median(np.diff(vt)))] = np.nan
     cosines = vec / np.linalg.norm(vec, axis=1, keepdims=True)
     keep = np.all(np.isfinite(cosines), axis=1)
     t, raw, cosines = t[keep], raw[keep], cosines[keep]
@@ -354,7 +377,11 @@ def _survey(path, options):
     compensated = raw - chosen.predict(t, cosines, raw)
     deinterf = None
     if options.compare_deinterf:
-        deinterf = tl.deinterf_compensate(t, cosines, raw, raw, in_box, options.terms)
+        try:
+            deinterf = tl.deinterf_compensate(t, cosines, raw, raw, in_box, options.terms)
+        except Exception as error:      # noqa: BLE001 - the comparison is optional
+            notes.append(f"deinterf could not run on this flight ({type(error).__name__}: "
+                         f"{error}); left out of the comparison")
     times["tolles_lawson_s"] = _clock() - mark
 
     # Georeferenced anomaly: IGRF, diurnal.
@@ -377,8 +404,10 @@ def _survey(path, options):
     lines = find_lines(t, track.north, track.east)
     if options.lag_s is None:
         lag, lag_table = estimate_lag(parsed, t, lines, anomaly, track.origin)
+        lag_source = "crossovers" if lag is not None else "none"
+        lag = lag or 0.0
     else:
-        lag, lag_table = float(options.lag_s), []
+        lag, lag_table, lag_source = float(options.lag_s), [], "given"
     if lag:
         track = dataclasses.replace(georeference(parsed, t + lag, origin=track.origin), t=t)
         anomaly = anomaly + igrf
@@ -398,8 +427,8 @@ def _survey(path, options):
                               rms_after=math.nan, residuals=np.zeros(0), n_crossovers=0,
                               unlevelled=[k for k, line in enumerate(lines)
                                           if line.kind == "line"], lines=list(lines))
-        notes.append("no tie line crosses the survey lines: the map is not levelled (the "
-                     "lag is not corrected either)")
+        notes.append("no tie line crosses the survey lines: the map is not levelled"
+                     + (" (the lag is not corrected either)" if options.lag_s is None else ""))
     levelled = levelling.values
     times["levelling_s"] = _clock() - mark
     mark = _clock()
@@ -410,8 +439,7 @@ def _survey(path, options):
     grid = grid_anomaly(track.north[on], track.east[on], levelled[on],
                         spacing_m=options.spacing_m, method=options.grid_method)
     times["gridding_s"] = _clock() - mark
-    lag_record = {"lag_s": lag, "source": "given" if options.lag_s is not None else
-                  "crossovers" if cross else "none", "scan": lag_table}
+    lag_record = {"lag_s": lag, "source": lag_source, "scan": lag_table}
     result = SurveyResult(
         log_name=parsed.name, date=date, options=options, timing=timing, t=t, raw=raw,
         cosines=cosines, box=box, box_source=box_source, tl=chosen, tl_other=other,
@@ -440,7 +468,8 @@ def estimate_lag(parsed, t, lines, anomaly, origin):
     neighbouring lines, and the anomaly's gradients turn that into crossover differences.
     The lag is the one that minimises the crossover RMS of the (unlevelled) anomaly: a scan
     in LAG_STEP_S over +-LAG_RANGE_S, then LAG_FINE_S steps around the best. Returns
-    (lag_s, [(lag_s, rms_nT, crossovers)]); (0.0, ...) when there are no crossovers."""
+    (lag_s, [(lag_s, rms_nT, crossovers)]); (None, ...) when fewer than three crossovers
+    leave no RMS to minimise."""
     from .georef import georeference
     from .levelling import crossovers
 
@@ -456,7 +485,7 @@ def estimate_lag(parsed, t, lines, anomaly, origin):
         scan.append((round(float(lag), 6), *rms(float(lag))))
     best = min(scan, key=lambda row: row[1])
     if not math.isfinite(best[1]):
-        return 0.0, scan
+        return None, scan
     for lag in np.arange(best[0] - LAG_STEP_S, best[0] + LAG_STEP_S + LAG_FINE_S / 2,
                          LAG_FINE_S):
         scan.append((round(float(lag), 6), *rms(float(lag))))
@@ -539,7 +568,8 @@ def score_against_truth(result, truth_path):
     if result.deinterf is not None:
         scores["box_residual_deinterf_nT"] = rms_about_mean(
             (result.deinterf["compensated"] - scalar)[box])
-    scores["box_residual_over_floor"] = scores["box_residual_compensated_nT"] / noise
+    scores["box_residual_over_floor"] = (scores["box_residual_compensated_nT"] / noise
+                                         if noise > 0 else None)
     on = result.on_lines()
     scores["line_anomaly_rms_nT"] = rms_about_mean((result.levelled - true_anomaly)[on])
     scores["line_anomaly_unlevelled_rms_nT"] = rms_about_mean(
@@ -571,11 +601,12 @@ def score_against_truth(result, truth_path):
         "recovered_at_m": [float(gn.flat[k]), float(ge.flat[k])],
         "true_at_m": [float(gn.flat[j]), float(ge.flat[j])],
         "distance_m": float(math.hypot(gn.flat[k] - gn.flat[j], ge.flat[k] - ge.flat[j]))}
-    scores["sources_local_m"] = [
-        [float(v) for v in _truth_local(survey, np.float64(d["lat_deg"]),
-                                         np.float64(d["lon_deg"]), 0.0)[:2]]
-        for d in survey["dipoles"]] if survey["dipoles"] and "lat_deg" in survey["dipoles"][0] \
-        else [[float(d["north_m"]), float(d["east_m"])] for d in survey["dipoles"]]
+    # The sources in the map's frame (from the first GPS fix, not the scenario's site).
+    site = survey["origin"]
+    shift_n = (site["lat_deg"] - lat0) * METRES_PER_DEGREE
+    shift_e = (site["lon_deg"] - lon0) * METRES_PER_DEGREE * math.cos(math.radians(lat0))
+    scores["sources_local_m"] = [[float(d["north_m"]) + shift_n, float(d["east_m"]) + shift_e]
+                                 for d in survey["dipoles"]]
     result.truth_grid = truth_grid
     return scores
 
@@ -613,7 +644,14 @@ def _compensation_figures(result):
 
 
 def summary(result):
-    """The report's figures as plain JSON values."""
+    """The report's figures as plain JSON values (on one BLAS thread, as :func:`survey_card`,
+    so that they are the same everywhere)."""
+    from threadpoolctl import threadpool_limits
+    with threadpool_limits(1):
+        return _summary(result)
+
+
+def _summary(result):
     from .pipeline import jsonable
     on = result.on_lines()
     out = {"log": result.log_name, "date": result.date,
@@ -820,7 +858,7 @@ def _report_lines(result, figures):
             if isinstance(settings, dict) else str(settings)
         out += [f"deinterf ({result.deinterf.get('version', '')}) on the same samples: "
                 f"{text}.", ""]
-    if scores:
+    if scores and scores.get("box_residual_over_floor") is not None:
         out += [f"The noise floor (the cesium's own noise) is {scores['noise_floor_nT']:.3f} nT: "
                 f"the compensated residual is {scores['box_residual_over_floor']:.1f} times it.",
                 ""]
@@ -850,7 +888,8 @@ def _report_lines(result, figures):
             f"{figures['anomaly_nT']['max']:.1f} nT; grid: "
             + ", ".join(f"{k} {v}" for k, v in figures["grid"].items()
                         if not isinstance(v, (list, dict))) + ".",
-            f"Largest |anomaly| on the grid: {pk}.", ""]
+            f"Largest |anomaly| on the grid: {pk['amplitude_nT']:.1f} nT at "
+            f"{pk['northing']:.0f} m north, {pk['easting']:.0f} m east of the first fix.", ""]
     if scores:
         p = scores["peak"]
         out += ["## Against the scenario's truth", "",

@@ -94,9 +94,18 @@ def _jobs(args, out):
     if args.scenario is not None:
         if args.cards:
             raise CliError("give card images or --scenario with --seeds, not both")
+        # base.csv and truth.json of each flight are used unless told otherwise.
+        if args.no_base or args.base is not None:
+            options["base_station"] = None if args.no_base else str(Path(args.base).resolve())
+        if args.no_truth or args.truth is not None:
+            options["truth"] = None if args.no_truth else str(Path(args.truth).resolve())
+        scenario = args.scenario
+        if Path(scenario).exists():
+            scenario = str(Path(scenario).resolve())
         for seed in args.seeds or [0]:
-            jobs.append({"scenario": args.scenario, "seed": seed, "name": f"seed-{seed}",
-                         "out": str(out / f"seed-{seed}"), "options": dict(options)})
+            jobs.append({"scenario": scenario, "seed": seed, "name": f"seed-{seed}",
+                         "out": str((out / f"seed-{seed}").resolve()),
+                         "options": dict(options)})
         return jobs
     if not args.cards:
         raise CliError("give at least one card image (or --scenario NAME --seeds N-M)")
@@ -113,13 +122,16 @@ def _jobs(args, out):
         if path.is_dir():
             raise CliError(f"{path}: is a folder, not a card image or log")
         values = dict(options)
-        values["base_station"] = _beside(path, "base.csv", args.base, args.no_base)
+        base = _beside(path, "base.csv", args.base, args.no_base)
+        values["base_station"] = None if base is None else str(Path(base).resolve())
         truth = _beside(path, "truth.json", args.truth, args.no_truth)
         if truth is not None and args.truth is None and not _is_survey_truth(truth):
             truth = None                      # a truth beside the card, not a survey's
-        values["truth"] = truth
+        values["truth"] = None if truth is None else str(Path(truth).resolve())
         target = out if len(args.cards) == 1 else out / name
-        jobs.append({"card": str(path), "name": name, "out": str(target), "options": values})
+        # Absolute paths: a worker of a remote scheduler starts in its own folder.
+        jobs.append({"card": str(path.resolve()), "name": name, "out": str(target.resolve()),
+                     "options": values})
     return jobs
 
 
