@@ -122,9 +122,14 @@ class Flight:
         """The attitude as ``maglog calibrate --attitude`` reads it: ``t`` in seconds since
         00:00 UTC of the flight's date (the log's time base), roll, pitch and true heading
         in degrees."""
+        def deg(angle):
+            # Rounded first, then +0.0: an angle of -1e-17 rad (one rounding of a level
+            # attitude) is written "0.0000", not "-0.0000", whatever the CPU's trig path.
+            return f"{round(float(np.degrees(angle)), 4) + 0.0:.4f}"
+
         rows = ["t,roll_deg,pitch_deg,heading_deg"]
-        rows += [f"{self.start_seconds_of_day + t:.3f},{np.degrees(r):.4f},{np.degrees(p):.4f},"
-                 f"{np.degrees(h) % 360:.4f}"
+        rows += [f"{self.start_seconds_of_day + t:.3f},{deg(r)},{deg(p)},"
+                 f"{round(float(np.degrees(h) % 360), 4) % 360 + 0.0:.4f}"
                  for t, r, p, h in zip(self.t, self.roll, self.pitch, self.heading)]
         return ("\n".join(rows) + "\n").encode()
 

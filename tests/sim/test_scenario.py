@@ -1,10 +1,13 @@
 """Synthetic flights: the error model's truth and the survey's track, checked against
 relations computed here rather than in sim.stimulus.scenario."""
 
+import dataclasses
 import hashlib
+import io
 import json
 import re
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -76,31 +79,85 @@ def test_survey_rejects_impossible_wind():
 
 # --- the survey scenario (sim/stimulus/flight.py, geophysics.py, build.py) -----------------
 
-#: SHA-256 of the default and short scenarios' bursts, truth and attitude before the survey
-#: features: they must not change (new features off, new randomness from new generators).
-UNCHANGED = {
-    "default": "1abc31f9549b3b782160ca1c60a3d55a394bedaca449ab66249b6737f28b3a3d",
-    "short": "706b707884808da5ca76885861e4a7e976eeb473278cff377b486232847f0573",
-}
+#: The default and short scenarios as they were before the survey features (commit 8c3c925),
+#: in tests/sim/data/unchanged_<name>.json: they must not change (new features off, new
+#: randomness from new generators). The wire bytes are hashed: they are what the logger
+#: receives, promised byte for byte on any machine. The truth and the attitude are floats
+#: whose last bits follow the CPU's BLAS kernel and SIMD paths, so they are compared with
+#: tolerances. Regenerate deliberately with ``python tests/sim/test_scenario.py``.
+UNCHANGED = ("default", "short")
+DATA = Path(__file__).parent / "data"
+#: Relative and absolute tolerance of the truth's and the attitude's floats.
+RTOL, ATOL = 1e-9, 1e-9
 
 
-def stimulus_digest(stim):
+def bursts_digest(stim):
     h = hashlib.sha256()
     for burst in stim.system.bursts:
         h.update(repr((burst.channel, burst.start, burst.baud)).encode())
         h.update(bytes(burst.data))
-    h.update(json.dumps(stim.truth, sort_keys=True).encode())
-    h.update(stim.flight.attitude_csv())
     return h.hexdigest()
 
 
-@pytest.mark.parametrize("name", sorted(UNCHANGED))
-def test_existing_scenarios_unchanged(name, tmp_path):
+def attitude_fingerprint(csv):
+    """Row count, per-column sums, sums of squares and extremes, and every 97th row of the
+    attitude CSV: a change of any value by more than the tolerances shows in one of them."""
+    rows = np.loadtxt(io.BytesIO(csv), delimiter=",", skiprows=1, ndmin=2)
+    return {"rows": len(rows), "sum": rows.sum(axis=0).tolist(),
+            "sum_sq": (rows ** 2).sum(axis=0).tolist(), "min": rows.min(axis=0).tolist(),
+            "max": rows.max(axis=0).tolist(), "every_97th": rows[::97].tolist()}
+
+
+def snapshot(name):
     stim = load_scenario(name).build()
+    return stim, {"bursts_sha256": bursts_digest(stim), "truth": stim.truth,
+                  "attitude": attitude_fingerprint(stim.flight.attitude_csv())}
+
+
+def assert_close_tree(got, want, path=""):
+    """Equal structure and non-float leaves; floats within RTOL/ATOL."""
+    if isinstance(want, dict):
+        assert isinstance(got, dict) and sorted(got) == sorted(want), path
+        for key in want:
+            assert_close_tree(got[key], want[key], f"{path}.{key}")
+    elif isinstance(want, list):
+        assert isinstance(got, (list, tuple)) and len(got) == len(want), path
+        for i, (g, w) in enumerate(zip(got, want)):
+            assert_close_tree(g, w, f"{path}[{i}]")
+    elif isinstance(want, float) or isinstance(got, float):
+        assert isinstance(got, (int, float)) and not isinstance(got, bool), path
+        assert abs(got - want) <= ATOL + RTOL * abs(want), f"{path}: {got!r} != {want!r}"
+    else:
+        assert got == want, f"{path}: {got!r} != {want!r}"
+
+
+@pytest.mark.parametrize("name", UNCHANGED)
+def test_existing_scenarios_unchanged(name, tmp_path):
+    stim, got = snapshot(name)
+    want = json.loads((DATA / f"unchanged_{name}.json").read_text())
     assert "survey" not in stim.truth and not stim.files
-    assert stimulus_digest(stim) == UNCHANGED[name]
+    assert got["bursts_sha256"] == want["bursts_sha256"]
+    # Through JSON, as the truth file is written and read.
+    assert_close_tree(json.loads(json.dumps(got["truth"])), want["truth"], "truth")
+    assert_close_tree(got["attitude"], want["attitude"], "attitude")
     stim.write_truth(tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["attitude.csv", "truth.json"]
+
+
+def test_the_unchanged_check_sees_a_last_digit_and_a_byte():
+    # The comparison itself: a float off by more than the tolerance, or one wire byte
+    # changed, is caught; a change in the last bits is not.
+    want = {"a": [1.0, 2.0], "b": "x"}
+    assert_close_tree({"a": [1.0 + 1e-12, 2.0], "b": "x"}, want)
+    with pytest.raises(AssertionError, match=r"\.a\[1\]"):
+        assert_close_tree({"a": [1.0, 2.0 + 1e-6], "b": "x"}, want)
+    with pytest.raises(AssertionError):
+        assert_close_tree({"a": [1.0, 2.0], "b": "y"}, want)
+    stim = load_scenario("short").build()
+    before = bursts_digest(stim)
+    burst = stim.system.bursts[3]
+    stim.system.bursts[3] = dataclasses.replace(burst, data=bytes(burst.data[:-1]) + b"#")
+    assert bursts_digest(stim) != before
 
 
 def survey_data():
@@ -355,3 +412,10 @@ def test_survey_preset():
         peak = np.abs(anomaly_total(dict(truth, dipoles=[dipole]), north, east, 40.0)).max()
         assert 20 <= peak <= 200
     assert scenario.diurnal.base_station and scenario.diurnal.amplitude_nT == 20.0
+
+
+if __name__ == "__main__":
+    DATA.mkdir(exist_ok=True)
+    for scenario in UNCHANGED:
+        (DATA / f"unchanged_{scenario}.json").write_text(
+            json.dumps(snapshot(scenario)[1], sort_keys=True, indent=1) + "\n")
