@@ -258,14 +258,23 @@ def _mbr(plan, disk_id):
     return bytes(mbr)
 
 
+#: Characters a volume label may not hold besides controls (FAT specification §6.1).
+_LABEL_FORBIDDEN = '*?.,;:/\\|+=<>[]"'
+
+
 def _label_bytes(label):
+    """The 11 label bytes of ``label``: upper-cased, padded with spaces. A FAT label is 11
+    bytes of the OEM code page, which the card does not record: only printable ASCII is
+    accepted, so that every computer shows the same label."""
     if label is None:
         return arch.NO_NAME_LABEL
-    raw = label.upper().encode("ascii")
-    if not raw or len(raw) > arch.DIR_NAME_BYTES or any(c in b'*?.,;:/\\|+=<>[]"' or c < 0x20
-                                                         for c in raw):
-        raise FatError(f"Volume label must be 1..11 plain characters, not {label!r}")
-    return raw.ljust(arch.DIR_NAME_BYTES)
+    upper = label.upper()
+    if (not upper or len(upper) > arch.DIR_NAME_BYTES
+            or any(not " " <= c <= "~" or c in _LABEL_FORBIDDEN for c in upper)):
+        raise FatError(f"Volume label must be 1 to {arch.DIR_NAME_BYTES} printable ASCII "
+                       f"characters (letters A-Z, digits, space and punctuation other than "
+                       f"{_LABEL_FORBIDDEN}), not {label!r}")
+    return upper.encode("ascii").ljust(arch.DIR_NAME_BYTES)
 
 
 def _boot_sector(plan, label, volume_id):

@@ -792,3 +792,35 @@ def test_fat_cache_keeps_at_most_n_sectors(tmp_path, fat_tools, external):
         with pytest.raises(ValueError, match=r"^FAT cache size must be a positive number of "
                                              r"sectors, not 0$"):
             run(Volume.mount(device, fat_cache_sectors=0))
+
+
+# -- Volume label -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("label", ["ÄÖÜ", "café", "LOG\x7f", "TAB\tX", "A.B", "TWELVE CHARS", ""])
+def test_a_label_that_is_not_plain_ascii_is_refused_in_one_line(tmp_path, label):
+    path = tmp_path / "c.img"
+    with pytest.raises(FatError, match=r"^Volume label must be 1 to 11 printable ASCII "
+                                       r"characters \(letters A-Z, digits, space and "
+                                       r"punctuation other than .*\), not ") as error:
+        format_image(path, 4_000_000_000, label=label)
+    assert "\n" not in str(error.value)
+    assert not path.exists()                 # refused before anything was written
+
+
+def test_a_plain_label_is_stored_upper_case(tmp_path):
+    path = tmp_path / "c.img"
+    format_image(path, 64 * MiB, cluster_bytes=512, label="log-2024 #1")
+    with open(path, "rb") as f:
+        f.seek(8192 * 512 + arch.BS_VOL_LAB)
+        assert f.read(11) == b"LOG-2024 #1"
+
+
+def test_cli_card_format_refuses_a_non_ascii_label(tmp_path, capsys):
+    from maglog.cli.main import main
+    path = tmp_path / "c.img"
+    assert main(["card", "format", str(path), "--size", "4GB", "--label", "ÄÖÜ"]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.count("\n") == 1
+    assert captured.err.startswith("maglog: error: Volume label must be 1 to 11 printable "
+                                   "ASCII characters")
+    assert not path.exists()
