@@ -16,6 +16,9 @@ Decisions beyond the specification's letter:
   initialises the card again every ``init_retry_s``. A recording cut short that way, or by
   a watchdog reset, resumes in a new file once a card mounts and the mount finds the volume
   dirty (the file that was being written is kept as its last sync left it).
+* The recording starts at the button: the record gate opens before the file is created,
+  so the frames that arrive while ``LOGnnnnn.TXT`` is made (a scan of the root directory,
+  perhaps its growth) wait in the ring and are the file's first bytes.
 * A full card ends the recording: what fitted is kept, the file is closed cleanly, and the
   loop waits in :attr:`State.FULL` for a button press to mount a card again.
 * A ring overflow (frames dropped) is counted in :attr:`LoggerApp.overflows` (events) and
@@ -330,16 +333,22 @@ class LoggerApp:
                                   what="the DMA to be idle")
 
     async def _start_recording(self):
+        """The recording starts now: the ring is emptied and the gate opened first, then
+        the file is created, so that the frames arriving meanwhile (creating the file scans
+        and may grow the root directory: many block reads on a card with many files) wait
+        in the ring and reach the file with the first flush."""
         await self._quiesce()
         await self.storage.clear()
         self._dropped_at_start = await self.storage.read("dropped")
         self.dropped = 0
+        await self._write("logger", "control", record=1)
         try:
             self.file = await self.volume.create_log(await self._now())
         except FatNoNumberError as failure:
+            await self._quiesce()
+            await self.storage.clear()
             self._set_error(FwError.NO_LOG_NUMBER, failure)
             return
-        await self._write("logger", "control", record=1)
         self.state = State.RECORDING
         self._set_error(FwError.NONE)
 
@@ -369,15 +378,13 @@ class LoggerApp:
         """The card took what fitted: close the file cleanly and stop recording."""
         self._set_error(FwError.CARD_FULL, full)
         try:
+            # The gate is open from the button on, also while the file is created.
+            await self._quiesce()
             if self.file is not None:
-                await self._write("logger", "control", record=0)
-                await self._wait_field("logger", "status", "in_frame", 0,
-                                       self.settings.frame_timeout_s,
-                                       "the frame in flight to end")
                 await self.file.close(await self._now())
-                await self.storage.clear()
             elif self.volume is not None:
                 await self.volume.close()       # the clean bit back (create_log cleared it)
+            await self.storage.clear()
         except (SdError, FatError, BusTimeout) as failure:
             await self._fail(failure)
             return
