@@ -667,6 +667,14 @@ class Volume:
         self.next_free = cluster + 1 if cluster < last else first
         return cluster
 
+    async def _free_clusters(self, clusters):
+        """Mark ``clusters`` free (in the cache; the next FAT flush writes them)."""
+        for cluster in clusters:
+            await self._set_fat_entry(cluster, arch.FAT_FREE)
+            self._fresh.discard(cluster)
+            self.free_count += 1
+            self.next_free = min(self.next_free, cluster)
+
     async def _write_fsinfo(self):
         """Write FSInfo when its free count or next-free hint changed (an allocation): a
         sync that allocated nothing leaves the sector as it is, a block write saved."""
@@ -934,6 +942,65 @@ class LogFile:
         self.size = new_size
         await self.sync(timestamp)
 
+    async def end_at(self, size, timestamp):
+        """End the file at ``size`` bytes (ring path, nothing appended pending): anywhere
+        from 0 up to the end of its last allocated cluster, below its synced size too (the
+        logger ends a file on a full card at its last whole frame). The clusters after the
+        one ``size`` ends in are freed. Safe order at any cut: growing, the FAT (fresh
+        clusters past the end were never on the card) then the entry, as :meth:`sync`;
+        shrinking, the entry first (the chain is then at worst longer than the file: lost
+        clusters), then the FAT sector that ends the chain, then the ones that free its
+        tail, then FSInfo."""
+        self._check_open()
+        if self._tail:
+            raise FatError(f"{self.name} holds {len(self._tail)} appended bytes not yet "
+                           f"synced: sync before ending it")
+        volume = self.volume
+        cluster_bytes = volume.layout.cluster_bytes
+        allocated = self._base + len(self._clusters)
+        if (not isinstance(size, int) or isinstance(size, bool)
+                or not 0 <= size <= allocated * cluster_bytes):
+            raise ValueError(f"End must be an integer from 0 to {allocated * cluster_bytes} "
+                             f"bytes (the file's allocated clusters), not {size!r}")
+        keep = _ceil_div(size, cluster_bytes)
+        if keep > self._base or not self._first:
+            clusters, base = list(self._clusters), self._base
+        else:                           # the last kept cluster was forgotten: walk the chain
+            clusters, base = await volume._chain(self._first), 0
+        last = clusters[keep - 1 - base] if keep else None
+        tail = clusters[keep - base:]
+        shrinking = size < self.size
+        self.size = size
+        if not keep:
+            self._first = 0
+        self._clusters = [last] if keep else []
+        self._base = keep - 1 if keep else 0
+        if shrinking:
+            await self._write_metadata(timestamp)
+        if last is not None:
+            await volume._set_fat_entry(last, arch.FAT_EOC)
+            if shrinking:
+                index = last // arch.FAT_ENTRIES_PER_SECTOR
+                await volume._write_fat_sectors([index])
+                volume._fat_dirty.discard(index)
+        await volume._free_clusters(tail)
+        if shrinking:
+            await volume._flush_fat()
+            await volume._write_fsinfo()
+        else:
+            await self.sync(timestamp)
+
+    async def _write_metadata(self, timestamp):
+        """The directory entry: size, first cluster, write time from ``timestamp``."""
+        date, time = fat_date_time(timestamp)
+        _put16(self._entry, arch.DIR_WRT_DATE, date)
+        _put16(self._entry, arch.DIR_WRT_TIME, time)
+        _put16(self._entry, arch.DIR_LST_ACC_DATE, date)
+        _put16(self._entry, arch.DIR_FST_CLUS_HI, self._first >> 16)
+        _put16(self._entry, arch.DIR_FST_CLUS_LO, self._first & 0xFFFF)
+        _put32(self._entry, arch.DIR_FILE_SIZE, self.size + len(self._tail))
+        await self._write_entry()
+
     async def sync(self, timestamp):
         """Make the file on the card hold everything appended so far, in the safe order:
         the partial data sector, the FAT sectors (every FAT), the directory entry (size,
@@ -944,14 +1011,7 @@ class LogFile:
             await volume.device.write_block(await self._sector_lba(self.size // SECTOR),
                                             bytes(self._tail.ljust(SECTOR, b"\0")))
         await volume._flush_fat()
-        date, time = fat_date_time(timestamp)
-        _put16(self._entry, arch.DIR_WRT_DATE, date)
-        _put16(self._entry, arch.DIR_WRT_TIME, time)
-        _put16(self._entry, arch.DIR_LST_ACC_DATE, date)
-        _put16(self._entry, arch.DIR_FST_CLUS_HI, self._first >> 16)
-        _put16(self._entry, arch.DIR_FST_CLUS_LO, self._first & 0xFFFF)
-        _put32(self._entry, arch.DIR_FILE_SIZE, self.size + len(self._tail))
-        await self._write_entry()
+        await self._write_metadata(timestamp)
         await volume._write_fsinfo()
         self._forget_before(self.size // volume.layout.cluster_bytes)
 

@@ -21,7 +21,8 @@ from .sdcard import SdCardDriver, SdTimeout
 
 
 __all__ = ["DMA_SOURCE_RING", "DMA_SOURCE_BUFFER", "RingSource", "DmaBufferPort",
-           "DmaBlockDevice", "DmaStorage", "FlushResult", "RingError", "flush_ring"]
+           "DmaBlockDevice", "DmaStorage", "FlushResult", "RingError", "flush_ring",
+           "last_frame_end"]
 
 #: Values of the DMA's ``control.source`` field (``hw.dma.DmaSource``; the firmware does not
 #: import gateware, the tests check that the two agree).
@@ -217,6 +218,25 @@ class FlushResult:
     released: int
 
 
+async def last_frame_end(device, runs, start, end):
+    """Where the last whole frame in bytes ``start .. end`` of a file ends (just after its
+    line feed; ``start`` if none ends there), read back from the card: ``runs`` (extents)
+    say where the file's sectors from ``start`` on are. Frames end in a line feed and are at
+    most :data:`~maglog.hw.arch.frames.MAX_FRAME_LIMIT` bytes long, so at most
+    ``MAX_FRAME_LIMIT / 512 + 1`` sectors are read."""
+    sector = (end - 1) // BLOCK_BYTES
+    while end > start and sector * BLOCK_BYTES + BLOCK_BYTES > start:
+        run = next(r for r in runs if r.file_sector <= sector < r.file_sector + r.count)
+        data = await device.read_block(run.lba + sector - run.file_sector)
+        low = max(start - sector * BLOCK_BYTES, 0)
+        high = min(end - sector * BLOCK_BYTES, BLOCK_BYTES)
+        found = data.rfind(b"\n", low, high)
+        if found >= 0:
+            return sector * BLOCK_BYTES + found + 1
+        sector -= 1
+    return start
+
+
 async def flush_ring(file, storage, timestamp):
     """Move the ring's committed bytes into ``file`` (a :class:`~maglog.sw.fat32.LogFile`
     fed only from the ring since the ring was cleared): read ``dma.level``, write the
@@ -229,8 +249,9 @@ async def flush_ring(file, storage, timestamp):
     One round reaches as far as the DMA's ``first`` field does; more committed bytes are
     moved in further rounds, each a complete flush. The metadata is written only after
     every data write of its round succeeded (an :class:`~maglog.sw.sdcard.SdError`
-    propagates before it). On a full card the file ends at its last cluster and
-    :class:`~maglog.sw.fat32.FatFullError` says how many bytes fitted (``written``)."""
+    propagates before it). On a full card the file ends at the last whole frame that fitted
+    (:func:`last_frame_end`; the clusters after it freed) and
+    :class:`~maglog.sw.fat32.FatFullError` says how many bytes it took (``written``)."""
     if not isinstance(timestamp, (_dt.datetime, tuple)):
         raise TypeError(f"Timestamp must be a datetime, not {timestamp!r}")
     level = await storage.read("level")
@@ -241,6 +262,7 @@ async def flush_ring(file, storage, timestamp):
     target = start - start % BLOCK_BYTES + level
     reach = storage._limit("first")
     sectors = writes = released = 0
+    written = []                        # every run of this flush (to find its last frame)
     while file.size < target:
         old = file.size
         base = old // BLOCK_BYTES
@@ -249,12 +271,19 @@ async def flush_ring(file, storage, timestamp):
         for run in extents.runs:
             writes += await storage.write_ring(run.lba, run.file_sector - base, run.count)
             sectors += run.count
+        written += extents.runs
+        if extents.size < wanted:
+            # The card is full: the file ends at the last whole frame that fitted (its
+            # line feed), not inside the frame the last cluster cuts.
+            end = await last_frame_end(storage.device, written, start, extents.size)
+            await file.end_at(end, timestamp)
+            whole = max(end // BLOCK_BYTES - base, 0)
+            await storage.release(whole)
+            raise FatFullError(f"the card is full: {file.name} took {end - start} of "
+                               f"{target - start} bytes (whole frames)", end - start)
         await file.grow(extents.size, timestamp)
         whole = extents.size // BLOCK_BYTES - base
         await storage.release(whole)
         released += whole
-        if extents.size < wanted:
-            raise FatFullError(f"the card is full: {file.name} took {extents.size - start} of "
-                               f"{target - start} bytes", extents.size - start)
     return FlushResult(bytes=file.size - start, sectors=sectors, writes=writes,
                        released=released)
