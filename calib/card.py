@@ -799,10 +799,18 @@ _TEXT_FRACTION = 0.95
 _TEXT_BYTES = frozenset(range(0x20, 0x7F)) | {0x09, 0x0A, 0x0D}
 
 
+#: Erased flash reads as 0xFF: a log copied from a flash chip or a card's raw blocks may be
+#: padded with it (before the first line, after the last, between writes). Such bytes are
+#: neither text nor an image's tables: they are left out of the share of text.
+ERASED = 0xFF
+
+
 def _looks_like_text_log(head):
     # A few NUL bytes (a serial glitch the logger kept, a write cut by power loss) do not
     # make a log an image: only the share of text does. An image without the boot
-    # signature is mostly zeros and binary tables, far below the share.
+    # signature is mostly zeros and binary tables, far below the share. Erased-flash
+    # padding (0xFF) counts for neither.
+    head = head.replace(bytes([ERASED]), b"")
     if not head or b"$" not in head:
         return False
     text = len(head) - len(head.translate(None, bytes(_TEXT_BYTES)))

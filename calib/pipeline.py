@@ -550,12 +550,14 @@ def _calibrate(path, ref, method, seed, attitude, objective):
     if not logs:
         raise CalibrationError(f"{path}: no LOG*.TXT file found")
     name, data = max(logs, key=lambda item: len(item[1]))
+    notes = []
+    data = _skip_erased(data, notes)
     parsed = parse_log(data, name=name)
     mag = parsed.mag
     if len(mag) < len(PARAMETERS) + 1:
         raise CalibrationError(f"{name}: only {len(mag)} magnetometer samples; at least "
                                f"{len(PARAMETERS) + 1} are needed")
-    notes = []
+    notes += _saturation(name, mag.b)
     use_time = bool(np.all(np.isfinite(mag.t)))
     mag_axis = mag.t if use_time else mag.line.astype(float)
     screens = {}
@@ -626,6 +628,59 @@ def _calibrate(path, ref, method, seed, attitude, objective):
                      f"({OUTLIER_SIGMAS:g} robust standard deviations) off the fit: spikes "
                      "or bad samples in the log; the residual RMS is mostly theirs")
     return run
+
+
+#: Runs of at least this many 0xFF bytes are erased flash (padding), not data.
+ERASED_RUN = 16
+_ERASED_RE = None
+
+
+def _skip_erased(data, notes):
+    """``data`` without its runs of erased flash (0xFF, at least ERASED_RUN of them: a log
+    copied from flash or raw card blocks, padded before, after or between its writes), said
+    in ``notes``; a lone 0xFF inside a line stays (the parser counts that line as bad)."""
+    import re
+    global _ERASED_RE
+    if b"\xff" * ERASED_RUN not in data:
+        return data
+    if _ERASED_RE is None:
+        _ERASED_RE = re.compile(b"\xff{%d,}" % ERASED_RUN)
+    runs = _ERASED_RE.findall(data)
+    skipped = sum(len(run) for run in runs)
+    notes.append(f"{skipped:,} bytes of erased flash (0xFF) in {len(runs)} run"
+                 f"{'s' * (len(runs) != 1)} skipped: padding, not data")
+    return _ERASED_RE.sub(b"", data)
+
+
+#: The PMAG line's largest magnitude (±99999.9 nT): a sample there is the sensor's or the
+#: format's limit, not a measurement. An axis with this share of its samples there (or
+#: at a value it never leaves) is saturated or stuck, and the log is refused.
+SATURATED_NT = 99999.9
+SATURATED_REFUSE = 0.5
+
+
+def _saturation(name, b):
+    """Refuse a log whose axis is saturated (SATURATED_REFUSE of its samples at the format's
+    limit ±SATURATED_NT); note the saturated samples of one that is not (the screen leaves
+    them out: their magnitude is no field's)."""
+    notes = []
+    if len(b) == 0:
+        return notes
+    at_limit = np.abs(b) >= SATURATED_NT - 0.05
+    for axis in range(3):
+        count = int(np.count_nonzero(at_limit[:, axis]))
+        if not count:
+            continue
+        share = count / len(b)
+        what = (f"axis {'xyz'[axis]} reads the format's limit ±{SATURATED_NT:,.1f} nT in "
+                f"{count:,} of {len(b):,} samples ({100 * share:.0f} %)")
+        if share >= SATURATED_REFUSE:
+            raise CalibrationError(f"{name}: {what}: the sensor is saturated on that axis "
+                                   "(or its range is set wrong), so the log holds no "
+                                   "field to calibrate; no result can be trusted")
+        notes.append(f"{what}: saturated samples, not measurements (left out by the "
+                     "screen)")
+    return notes
 
 
 def _fitter(b, r, method, seed, objective):

@@ -241,10 +241,18 @@ def calibrate_log(tmp_path, log, *args, name="LOG00001.TXT"):
     ("two distinct vectors", dict(pmag=set_axes(
         lambda k, x, y, z: (20000.0, 3000.0, 40000.0) if k % 2 else (-9000.0, 25000.0, 35000.0))),
      "pso", "Only 2 distinct vectors"),
-    ("stuck axis", dict(pmag=set_axes(lambda k, x, y, z: (x, y, 99999.9))), "pso",
-     "Axis z does not change (peak-to-peak 0 nT, about 99999.9 nT)"),
-    ("stuck axis, ellipsoid", dict(pmag=set_axes(lambda k, x, y, z: (x, y, 99999.9))),
-     "ellipsoid", "Axis z does not change"),
+    ("stuck axis", dict(pmag=set_axes(lambda k, x, y, z: (x, y, 100.0))), "pso",
+     "Axis z does not change (peak-to-peak 0 nT, about 100 nT)"),
+    # An axis at the PMAG line's limit is saturated: said so, whatever the method.
+    ("axis at the limit", dict(pmag=set_axes(lambda k, x, y, z: (x, y, 99999.9))), "pso",
+     "axis z reads the format's limit ±99,999.9 nT in"),
+    ("axis at the limit, ellipsoid", dict(pmag=set_axes(lambda k, x, y, z: (x, y, 99999.9))),
+     "ellipsoid", "the sensor is saturated on that axis"),
+    # x and y saturated at the limit of their own sign (not constant): this once "converged"
+    # with K11 = -3e-5 and warnings that blamed the coverage.
+    ("x and y saturated", dict(pmag=set_axes(lambda k, x, y, z: (
+        99999.9 if x > 0 else -99999.9, 99999.9 if y > 0 else -99999.9, z))), "lm",
+     "(100 %): the sensor is saturated on that axis"),
     ("axis of 309 digits", dict(pmag=set_axes(lambda k, x, y, z: ("9" * 309, y, z))), "pso",
      "only 0 magnetometer samples"),
     ("cesium all 0 nT", dict(cesium=lambda k, text: " 00000.000,1200"), "pso",
@@ -529,3 +537,33 @@ def test_held_out_says_why_when_a_half_cannot_be_fitted(tmp_path):
     assert summary["held_out_note"].startswith("the first half alone cannot be fitted") or \
         summary["held_out_note"].startswith("the second half alone cannot be fitted")
     assert "- held out: not scored (" in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_a_log_padded_with_erased_flash_is_read_as_a_log(flight, tmp_path):
+    """4 KiB of 0xFF (erased flash) before a log, and a run between its writes, do not make
+    it a card image: the runs are skipped and said, the rest calibrates as without them."""
+    log = flight.log()
+    middle = log.index(b"\n", len(log) // 2) + 1
+    padded = b"\xff" * 4096 + log[:middle] + b"\xff" * 512 + log[middle:]
+    status, out, err = calibrate_log(tmp_path, padded, "--method", "lm")
+    assert status == 0, err
+    assert "4,608 bytes of erased flash (0xFF) in 2 runs skipped" in out
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    status, _, err = calibrate_log(plain, log, "--method", "lm")
+    assert status == 0, err
+    import json
+    ours = json.loads((tmp_path / "report" / "parameters.json").read_text())
+    theirs = json.loads((plain / "report" / "parameters.json").read_text())
+    assert ours["K"] == theirs["K"] and ours["c"] == theirs["c"]
+
+
+def test_a_partly_saturated_axis_is_named(flight, tmp_path):
+    """An axis at the format's limit in a few samples: those are named as saturated (not
+    measurements) and the screen leaves them out; the calibration stands."""
+    edit = set_axes(lambda k, x, y, z: (99999.9 if k % 25 == 0 else x, y, z))
+    status, out, err = calibrate_log(tmp_path, edit_log(flight.log(), pmag=edit), "--method",
+                                     "lm")
+    assert status == 0, err
+    assert "axis x reads the format's limit ±99,999.9 nT in" in out
+    assert "saturated samples, not measurements" in out
