@@ -189,6 +189,52 @@ def _gps_items(scenario, track, rng, horizon, outages):
     return items
 
 
+def _field_causes(scenario, track, t, extra=None):
+    """What adds to the Earth field at the sensor at time ``t``: {the scenario's key that
+    sets it: nT}, largest first (``extra``: more causes measured by the caller)."""
+    causes = dict(extra or {})
+    geo = track.geo
+    if geo is not None:
+        north, east, up = (float(np.interp(t, track.t, v))
+                           for v in (track.north, track.east, track.up))
+        from .geophysics import anomaly_vector, diurnal_nT
+        for index, dipole in enumerate(geo.survey["dipoles"], 1):
+            b = anomaly_vector([dipole], north, east, up)
+            causes[f"[[anomaly.dipole]] #{index} (moment_Am2 "
+                   f"{dipole['moment_Am2']:g} A·m², {up + dipole['depth_m']:.3g} m below the "
+                   "sensor)"] = float(np.linalg.norm(b))
+        causes["[interference] vector_eddy_s"] = float(np.linalg.norm(geo.vector_eddy([t])))
+        causes["[diurnal]"] = abs(float(diurnal_nT(geo.survey, t)))
+    return sorted(causes.items(), key=lambda item: -item[1])
+
+
+def _check_sensor_range(scenario, track, what, t, value, limit, extra):
+    """A :class:`ScenarioError` naming the largest cause when ``value`` (a reading at
+    ``t``) does not fit the sensor's format; ``limit`` says the format's range."""
+    causes = _field_causes(scenario, track, t, extra)
+    cause = ("; the largest cause: " + f"{causes[0][0]} ({causes[0][1]:.3g} nT)"
+             if causes and causes[0][1] > 0 else "")
+    from .config import ScenarioError
+    return ScenarioError(f"{scenario.source}: the {what} would read {value:.6g} nT at t = "
+                         f"{t:.2f} s, outside its format's {limit}{cause}")
+
+
+def _mag_in_range(scenario, flight, track, sensed):
+    """Every magnetometer sample fits ``$PMAG1``'s ±XXXXX.X, or a ScenarioError."""
+    b = np.asarray(flight.b_meas, float)
+    bad = ~(np.abs(b) < sentences.PMAG_FIELD_LIMIT_NT).all(axis=1)
+    if not bad.any():
+        return
+    i = int(np.argmax(bad))
+    axis = int(np.argmax(~(np.abs(b[i]) < sentences.PMAG_FIELD_LIMIT_NT)))
+    err = scenario.errors
+    extra = {f"[errors] preset {err.preset!r} and noise_nT {err.noise_nT:g} (the "
+             "magnetometer's own errors)": float(np.linalg.norm(b[i] - sensed[i]))}
+    raise _check_sensor_range(scenario, track, f"magnetometer's {'xyz'[axis]} axis",
+                              float(flight.t[i]), float(b[i, axis]),
+                              f"±{sentences.PMAG_FIELD_LIMIT_NT} nT (PMAG1)", extra)
+
+
 def _mag_items(flight):
     return [Item(float(t), 0, sentences.pmag1(k % 100_000, *map(float, b)), "pmag", seq=k)
             for k, (t, b) in enumerate(zip(flight.t, flight.b_meas))]
@@ -199,6 +245,18 @@ def _cesium_items(scenario, track, rng, horizon):
     t = np.arange(cfg.first_s, horizon, 1.0 / cfg.rate_hz)
     clean = track.total(t) if track.geo is None else track.geo.cesium(t)
     field_nt = clean + rng.normal(scale=cfg.noise_nT, size=t.size)
+    limit = sentences._CESIUM_FIELD_LIMIT_NT
+    bad = ~((field_nt >= 0) & (field_nt < limit - 0.001))
+    if bad.any():
+        i = int(np.argmax(bad))
+        extra = {f"[channels.cesium] noise_nT {cfg.noise_nT:g}": abs(field_nt[i] - clean[i])}
+        if track.geo is not None:
+            extra["[interference] tl_coefficients, heading_error_nT"] = abs(
+                float(clean[i]) - float(track.geo.body(t[i:i + 1], *(
+                    np.interp(t[i:i + 1], track.t, track.attitude[:, k])
+                    for k in range(3)))[1][0]))
+        raise _check_sensor_range(scenario, track, "cesium", float(t[i]), float(field_nt[i]),
+                                  f"0..{limit:g} nT", extra)
     signal = np.clip(cfg.signal + rng.integers(-20, 21, size=t.size), 0, 9999)
     return [Item(float(tk), 2, sentences.cesium(float(f), int(s)), "cesium", seq=k)
             for k, (tk, f, s) in enumerate(zip(t, field_nt, signal))]
@@ -357,6 +415,8 @@ def build(scenario):
         flight_s += survey_seconds(survey)[1]
     horizon = flight_s + rec.stop_after_landing_s + rec.end_after_stop_s + _HORIZON_MARGIN_S
     flight, track = make_flight(scenario, errors, rng_flight, horizon)
+    _mag_in_range(scenario, flight, track, flight.b_earth if track.geo is None else
+                  flight.b_earth + track.geo.vector_eddy(flight.t))
 
     outages = [(x.start_s, x.end_s) for x in scenario.faults if x.kind == "gps_outage"]
     items = {}

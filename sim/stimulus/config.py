@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 
-__all__ = ["ScenarioError", "SurveyScenario", "Fault", "Dipole", "SCHEMA", "FAULT_SCHEMA",
+__all__ = ["ScenarioError", "MAX_SCENARIO_S", "SEED_MAX", "shorten", "SurveyScenario",
+           "Fault", "Dipole", "SCHEMA", "FAULT_SCHEMA",
            "DIPOLE_SCHEMA", "CHANNEL_NAMES", "FAULT_KINDS", "TL_TERMS",
            "default_scenario_path", "load_scenario", "loads_scenario", "scenario_from_dict",
            "preset_names"]
@@ -32,6 +33,14 @@ TIMINGS = ("rate", "groups", "stream")
 MAX_BAUD_ERROR = 0.25
 #: Tolles–Lawson terms of ``[interference] tl_coefficients`` (geophysics.TL_TERM_NAMES).
 TL_TERMS = 18
+#: The longest run (power-up to the run's end, seconds) a scenario may describe: six hours,
+#: beyond any multirotor's endurance; the flight's arrays (100 Hz) and frames stay within a
+#: few GB. The command line's ``--max-seconds`` (default far lower) refuses long runs first.
+MAX_SCENARIO_S = 6 * 3600.0
+#: Seeds are 32-bit unsigned integers (as ``maglog --seed``).
+SEED_MAX = (1 << 32) - 1
+#: Longest text of a value (or key) an error message repeats.
+ECHO_CHARS = 60
 
 
 class ScenarioError(ValueError):
@@ -52,24 +61,46 @@ def _positive():
     return (lambda v: v > 0, "must be > 0")
 
 
+def _num(x):
+    return str(x) if isinstance(x, int) else f"{x:g}"
+
+
 def _at_least(low):
-    return (lambda v: v >= low, f"must be >= {low:g}")
+    return (lambda v: v >= low, f"must be >= {_num(low)}")
 
 
 def _within(low, high):
-    return (lambda v: low <= v <= high, f"must be within {low:g}..{high:g}")
+    return (lambda v: low <= v <= high, f"must be within {_num(low)}..{_num(high)}")
 
 
 def _below(limit):
     return (lambda v: v < limit, f"must be < {limit:g}")
 
 
+def _from(low, high):
+    """``low`` to ``high``; said as ``>= low`` below it (the lower bound is the usual
+    mistake), ``at most high`` above it."""
+    return (lambda v: low <= v <= high,
+            lambda v: f"must be >= {_num(low)}" if not v >= low
+            else f"must be at most {_num(high)}")
+
+
+def _up_to(limit):
+    """> 0 and at most ``limit``."""
+    return (lambda v: 0 < v <= limit,
+            lambda v: "must be > 0" if not v > 0 else f"must be at most {_num(limit)}")
+
+
+#: Any one duration of the flight or the recording.
+_SECONDS = _up_to(MAX_SCENARIO_S)
+
+
 SCHEMA = {
     "scenario": {
         "name": Key("str", "unnamed"),
-        "seed": Key("int", 0, _at_least(0)),
+        "seed": Key("int", 0, _from(0, SEED_MAX)),
         "start": Key("datetime", _dt.datetime(2026, 6, 1, 10, 0, 0, tzinfo=_dt.timezone.utc)),
-        "clk_freq_hz": Key("float", 1_843_200.0, _positive()),
+        "clk_freq_hz": Key("float", 1_843_200.0, _within(1e3, 500e6)),
         "max_frame": Key("int", 128, _within(18, 4096)),
     },
     "site": {
@@ -78,132 +109,141 @@ SCHEMA = {
         "ground_alt_m": Key("float", 408.0, _within(-400.0, 8000.0)),
     },
     "recording": {
-        "start_s": Key("float", 4.7, _positive()),
-        "stop_after_landing_s": Key("float", 2.0, _at_least(0.0)),
-        "end_after_stop_s": Key("float", 1.0, _positive()),
-        "quiet_before_s": Key("float", 0.05, _at_least(0.0)),
-        "quiet_after_s": Key("float", 0.25, _at_least(0.0)),
-        "hold_s": Key("float", 0.1, _positive()),
-        "debounce_s": Key("float", 0.01, _positive()),
+        "start_s": Key("float", 4.7, _SECONDS),
+        "stop_after_landing_s": Key("float", 2.0, _from(0.0, 3600.0)),
+        "end_after_stop_s": Key("float", 1.0, _up_to(3600.0)),
+        "quiet_before_s": Key("float", 0.05, _from(0.0, 10.0)),
+        "quiet_after_s": Key("float", 0.25, _from(0.0, 10.0)),
+        "hold_s": Key("float", 0.1, _up_to(10.0)),
+        "debounce_s": Key("float", 0.01, _up_to(1.0)),
     },
     "flight.ground": {
-        "seconds": Key("float", 8.0, _positive()),
+        "seconds": Key("float", 8.0, _SECONDS),
     },
     "flight.takeoff": {
-        "seconds": Key("float", 10.0, _positive()),
-        "height_m": Key("float", 40.0, _positive()),
+        "seconds": Key("float", 10.0, _SECONDS),
+        "height_m": Key("float", 40.0, _up_to(10_000.0)),
     },
     "flight.calibration": {
         "headings_deg": Key("floats", [0.0, 90.0, 180.0, 270.0]),
-        "seconds": Key("float", 20.0, _positive()),
-        "turn_s": Key("float", 4.0, _at_least(0.0)),
+        "seconds": Key("float", 20.0, _SECONDS),
+        "turn_s": Key("float", 4.0, _from(0.0, 3600.0)),
         "roll_deg": Key("float", 30.0, _within(0.0, 60.0)),
         "pitch_deg": Key("float", 30.0, _within(0.0, 60.0)),
         "yaw_deg": Key("float", 45.0, _within(0.0, 180.0)),
     },
     "flight.survey": {
-        "legs": Key("int", 2, _at_least(0)),
-        "leg_length_m": Key("float", 150.0, _positive()),
-        "speed_m_s": Key("float", 10.0, _positive()),
+        "legs": Key("int", 2, _from(0, 10_000)),
+        "leg_length_m": Key("float", 150.0, _up_to(100_000.0)),
+        "speed_m_s": Key("float", 10.0, _within(0.1, 50.0)),
         "course_deg": Key("float", 30.0, _within(-360.0, 360.0)),
-        "spacing_m": Key("float", 20.0, _at_least(0.0)),
-        "turn_s": Key("float", 6.0, _positive()),
-        "drag_per_s": Key("float", 0.1, _at_least(0.0)),
-        "tie_lines": Key("int", 0, _at_least(0)),
+        "spacing_m": Key("float", 20.0, _from(0.0, 10_000.0)),
+        "turn_s": Key("float", 6.0, _up_to(3600.0)),
+        "drag_per_s": Key("float", 0.1, _from(0.0, 10.0)),
+        "tie_lines": Key("int", 0, _from(0, 1000)),
     },
     "flight.landing": {
-        "seconds": Key("float", 10.0, _positive()),
+        "seconds": Key("float", 10.0, _SECONDS),
     },
     "flight.dynamics": {
         "natural_hz": Key("float", 1.2, _within(0.05, 10.0)),
         "damping": Key("float", 0.8, _within(0.1, 2.0)),
-        "max_rate_deg_s": Key("float", 120.0, _positive()),
-        "max_yaw_rate_deg_s": Key("float", 60.0, _positive()),
-        "turbulence_deg": Key("float", 0.7, _at_least(0.0)),
+        "max_rate_deg_s": Key("float", 120.0, _up_to(3600.0)),
+        "max_yaw_rate_deg_s": Key("float", 60.0, _up_to(3600.0)),
+        "turbulence_deg": Key("float", 0.7, _from(0.0, 30.0)),
         "turbulence_s": Key("float", 1.0, _within(0.02, 60.0)),
     },
     "gps": {
-        "first_s": Key("float", 1.0, _at_least(0.0)),
+        "first_s": Key("float", 1.0, _from(0.0, MAX_SCENARIO_S)),
         "offset_s": Key("float", 0.05, _within(0.0, 0.5)),
-        "fix_s": Key("float", 6.0, _at_least(0.0)),
+        "fix_s": Key("float", 6.0, _from(0.0, MAX_SCENARIO_S)),
         "talker": Key("str", "GP"),
         "satellites": Key("int", 10, _within(4, 12)),
-        "hdop": Key("float", 0.9, _positive()),
+        "hdop": Key("float", 0.9, _up_to(99.9)),
         "geoid_m": Key("float", 47.4, _within(-120.0, 120.0)),
         "distractors": Key("bool", True),
     },
     "channels.mag": {
-        "baud": Key("int", 115_200, _positive()),
+        "baud": Key("int", 115_200, _within(1, 10_000_000)),
         "rate_hz": Key("float", 20.0, _within(10.0, 50.0)),
-        "first_s": Key("float", 0.0123, _at_least(0.0)),
+        "first_s": Key("float", 0.0123, _from(0.0, 10.0)),
         "capture": Key("path", ""),
         "timing": Key("choice", "rate", choices=TIMINGS),
     },
     "channels.gps": {
-        "baud": Key("int", 9_600, _positive()),
+        "baud": Key("int", 9_600, _within(1, 10_000_000)),
         "capture": Key("path", ""),
         "timing": Key("choice", "groups", choices=TIMINGS),
     },
     "channels.cesium": {
-        "baud": Key("int", 9_600, _positive()),
+        "baud": Key("int", 9_600, _within(1, 10_000_000)),
         "rate_hz": Key("float", 10.0, _within(1.0, 20.0)),
-        "first_s": Key("float", 0.0437, _at_least(0.0)),
-        "noise_nT": Key("float", 0.05, _at_least(0.0)),
+        "first_s": Key("float", 0.0437, _from(0.0, 10.0)),
+        "noise_nT": Key("float", 0.05, _from(0.0, 1000.0)),
         "signal": Key("int", 1250, _within(0, 9999)),
         "capture": Key("path", ""),
         "timing": Key("choice", "rate", choices=TIMINGS),
     },
     "errors": {
         "preset": Key("choice", "paper_a", choices=("default", "paper_a", "none")),
-        "noise_nT": Key("float", 5.0, _at_least(0.0)),
+        "noise_nT": Key("float", 5.0, _from(0.0, 1000.0)),
         "mounting_deg": Key("floats", [0.0, 0.0, 0.0]),
     },
     "interference": {
         "tl_coefficients": Key("floats", [0.0] * TL_TERMS),
         "vector_eddy_s": Key("floats", [0.0] * 9),
-        "heading_error_nT": Key("float", 0.0),
+        "heading_error_nT": Key("float", 0.0, _within(-1000.0, 1000.0)),
     },
     "diurnal": {
-        "amplitude_nT": Key("float", 0.0, _at_least(0.0)),
-        "pulsation_nT": Key("float", 0.0, _at_least(0.0)),
-        "pulsation_period_s": Key("float", 600.0, _positive()),
+        "amplitude_nT": Key("float", 0.0, _from(0.0, 5000.0)),
+        "pulsation_nT": Key("float", 0.0, _from(0.0, 1000.0)),
+        "pulsation_period_s": Key("float", 600.0, _up_to(86_400.0)),
         "base_station": Key("bool", False),
         "base_rate_hz": Key("float", 1.0, _within(0.01, 100.0)),
-        "base_noise_nT": Key("float", 0.01, _at_least(0.0)),
+        "base_noise_nT": Key("float", 0.01, _from(0.0, 1000.0)),
     },
 }
 
 #: Keys of a ``[[anomaly.dipole]]`` table (None: required; NaN: optional, absent = induced).
 DIPOLE_SCHEMA = {
-    "north_m": Key("float", None),
-    "east_m": Key("float", None),
-    "depth_m": Key("float", None, _positive()),
-    "moment_Am2": Key("float", None, _positive()),
+    "north_m": Key("float", None, _within(-1e6, 1e6)),
+    "east_m": Key("float", None, _within(-1e6, 1e6)),
+    "depth_m": Key("float", None, _up_to(100_000.0)),
+    "moment_Am2": Key("float", None, _up_to(1e13)),
     "inclination_deg": Key("float", math.nan, _within(-90.0, 90.0)),
     "declination_deg": Key("float", math.nan, _within(-360.0, 360.0)),
 }
 
+#: Fault times may reach past the run (a fault over the whole run), within this.
+MAX_FAULT_S = 1e6
+#: At most this many tables of one fault kind, dipoles, and calibration headings.
+MAX_FAULTS = 1000
+MAX_DIPOLES = 100
+MAX_HEADINGS = 360
+
 #: Keys of each fault kind (``[[faults.<kind>]]`` tables); None: required.
 FAULT_SCHEMA = {
-    "noise_burst": {"channel": Key("channel", None), "start_s": Key("float", None, _at_least(0.0)),
-                    "end_s": Key("float", None, _positive()),
-                    "count": Key("int", 1, _at_least(1)),
+    "noise_burst": {"channel": Key("channel", None),
+                    "start_s": Key("float", None, _from(0.0, MAX_FAULT_S)),
+                    "end_s": Key("float", None, _up_to(MAX_FAULT_S)),
+                    "count": Key("int", 1, _from(1, 1_000_000)),
                     "length": Key("int", 6, _within(1, 64))},
     "dropped_bytes": {"channel": Key("channel", None),
-                      "start_s": Key("float", None, _at_least(0.0)),
-                      "end_s": Key("float", None, _positive()),
-                      "count": Key("int", 1, _at_least(1))},
+                      "start_s": Key("float", None, _from(0.0, MAX_FAULT_S)),
+                      "end_s": Key("float", None, _up_to(MAX_FAULT_S)),
+                      "count": Key("int", 1, _from(1, 1_000_000))},
     "bad_checksum": {"channel": Key("channel", None),
-                     "start_s": Key("float", None, _at_least(0.0)),
-                     "end_s": Key("float", None, _positive()),
-                     "count": Key("int", 1, _at_least(1))},
-    "baud_error": {"channel": Key("channel", None), "start_s": Key("float", None, _at_least(0.0)),
-                   "end_s": Key("float", None, _positive()),
+                     "start_s": Key("float", None, _from(0.0, MAX_FAULT_S)),
+                     "end_s": Key("float", None, _up_to(MAX_FAULT_S)),
+                     "count": Key("int", 1, _from(1, 1_000_000))},
+    "baud_error": {"channel": Key("channel", None),
+                   "start_s": Key("float", None, _from(0.0, MAX_FAULT_S)),
+                   "end_s": Key("float", None, _up_to(MAX_FAULT_S)),
                    "error": Key("float", None, _within(-MAX_BAUD_ERROR, MAX_BAUD_ERROR))},
-    "gps_outage": {"start_s": Key("float", None, _at_least(0.0)),
-                   "end_s": Key("float", None, _positive())},
-    "card_busy": {"start_s": Key("float", None, _at_least(0.0)),
-                  "end_s": Key("float", None, _positive()),
+    "gps_outage": {"start_s": Key("float", None, _from(0.0, MAX_FAULT_S)),
+                   "end_s": Key("float", None, _up_to(MAX_FAULT_S))},
+    "card_busy": {"start_s": Key("float", None, _from(0.0, MAX_FAULT_S)),
+                  "end_s": Key("float", None, _up_to(MAX_FAULT_S)),
                   "busy_s": Key("float", None, _within(1e-6, 10.0))},
 }
 
@@ -286,11 +326,50 @@ class SurveyScenario:
     def error(self, where, message):
         return ScenarioError(f"{self.source}: {where} {message}")
 
+    def flight_parts(self):
+        """Seconds of each part of the flight and the recording after it, by the keys
+        that set them (power-up to the run's end, before the presses are placed)."""
+        from .flight import survey_seconds
+        f, rec = self.flight, self.recording
+        lines, ties = survey_seconds(f.survey)
+        return {"[flight.ground] seconds": f.ground.seconds,
+                "[flight.takeoff] seconds": f.takeoff.seconds,
+                "[flight.calibration] seconds (per heading)":
+                    len(f.calibration.headings_deg) * f.calibration.seconds,
+                "[flight.survey] legs, leg_length_m, speed_m_s, turn_s": lines,
+                "[flight.survey] tie_lines": ties,
+                "[flight.landing] seconds": f.landing.seconds,
+                "[recording] stop_after_landing_s": rec.stop_after_landing_s,
+                "[recording] end_after_stop_s": rec.end_after_stop_s}
+
+    def run_seconds(self):
+        """The run's length (simulated seconds from power-up to its end), estimated from
+        the keys before anything is built (the stop press may move a few seconds later to
+        find a quiet GPS line)."""
+        return float(sum(self.flight_parts().values()))
+
 
 # --- parsing -------------------------------------------------------------------------------
 
+def shorten(text, limit=ECHO_CHARS):
+    """``text`` cut to ``limit`` characters with an ellipsis (error lines stay one short
+    line whatever a file holds)."""
+    text = str(text)
+    return text if len(text) <= limit else text[:limit - 1] + "…"
+
+
 def _describe(value):
-    return repr(value)
+    """``value`` as an error line repeats it: its repr, cut short (an integer too long to
+    print as decimal said by its size)."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 200:
+        return f"an integer of {value.bit_length()} bits"
+    if isinstance(value, list) and len(value) > 8:
+        return shorten(repr(value[:8])[:-1] + f", ... ({len(value)} items)]")
+    try:
+        text = repr(value)
+    except ValueError:                  # a huge number in a nested value
+        text = f"a {type(value).__name__}"
+    return shorten(text)
 
 
 def _convert(source, where, name, key, value):
@@ -336,7 +415,7 @@ def _convert(source, where, name, key, value):
     if key.check is not None:
         predicate, text = key.check
         if not predicate(value):
-            raise fail(text)
+            raise fail(text(value) if callable(text) else text)
     return value
 
 
@@ -345,7 +424,7 @@ def _table(source, where, schema, given):
         raise ScenarioError(f"{source}: {where} must be a table, not {_describe(given)}")
     unknown = sorted(set(given) - set(schema))
     if unknown:
-        raise ScenarioError(f"{source}: {where} unknown key {unknown[0]!r} (known: "
+        raise ScenarioError(f"{source}: {where} unknown key {shorten(repr(unknown[0]))} (known: "
                             f"{', '.join(schema)})")
     values = {}
     for name, key in schema.items():
@@ -367,22 +446,28 @@ def _split_tables(source, data):
                 raise ScenarioError(f"{source}: [faults] must hold [[faults.<kind>]] tables")
             for kind, entries in value.items():
                 if kind not in FAULT_SCHEMA:
-                    raise ScenarioError(f"{source}: unknown fault kind [[faults.{kind}]] "
+                    raise ScenarioError(f"{source}: unknown fault kind [[faults.{shorten(kind)}]] "
                                         f"(known: {', '.join(FAULT_KINDS)})")
                 if not isinstance(entries, list):
                     raise ScenarioError(f"{source}: faults.{kind} must be an array of tables "
                                         f"([[faults.{kind}]]), not {_describe(entries)}")
+                if len(entries) > MAX_FAULTS:
+                    raise ScenarioError(f"{source}: at most {MAX_FAULTS} [[faults.{kind}]] "
+                                        f"tables, not {len(entries)}")
                 faults[kind] = entries
         elif top == "anomaly":
             if not isinstance(value, dict):
                 raise ScenarioError(f"{source}: [anomaly] must hold [[anomaly.dipole]] tables")
             for kind, entries in value.items():
                 if kind != "dipole":
-                    raise ScenarioError(f"{source}: unknown table [anomaly.{kind}] (known: "
-                                        "[[anomaly.dipole]])")
+                    raise ScenarioError(f"{source}: unknown table [anomaly.{shorten(kind)}] "
+                                        "(known: [[anomaly.dipole]])")
                 if not isinstance(entries, list):
                     raise ScenarioError(f"{source}: anomaly.dipole must be an array of tables "
                                         f"([[anomaly.dipole]]), not {_describe(entries)}")
+                if len(entries) > MAX_DIPOLES:
+                    raise ScenarioError(f"{source}: at most {MAX_DIPOLES} [[anomaly.dipole]] "
+                                        f"tables, not {len(entries)}")
                 faults["anomaly.dipole"] = entries
         elif top in ("flight", "channels"):
             if not isinstance(value, dict):
@@ -391,13 +476,15 @@ def _split_tables(source, data):
                 name = f"{top}.{sub}"
                 if name not in SCHEMA:
                     known = ", ".join(k for k in SCHEMA if k.startswith(top + "."))
-                    raise ScenarioError(f"{source}: unknown table [{name}] (known: {known})")
+                    raise ScenarioError(f"{source}: unknown table [{shorten(name)}] "
+                                        f"(known: {known})")
                 tables[name] = inner
         elif top in SCHEMA:
             tables[top] = value
         else:
             known = sorted({k.split(".")[0] for k in SCHEMA} | {"faults", "anomaly"})
-            raise ScenarioError(f"{source}: unknown table [{top}] (known: {', '.join(known)})")
+            raise ScenarioError(f"{source}: unknown table [{shorten(top)}] (known: "
+                               f"{', '.join(known)})")
     return tables, faults
 
 
@@ -442,21 +529,24 @@ def scenario_from_dict(data, *, source="<scenario>", folder=None):
                             f"spacing_m > 0 (lines to cross), not {survey['tie_lines']!r}")
     scenario = values["scenario"]
     calibration = values["flight.calibration"]
+    if len(calibration["headings_deg"]) > MAX_HEADINGS:
+        raise ScenarioError(f"{source}: [flight.calibration] headings_deg must hold at most "
+                            f"{MAX_HEADINGS} headings, not {len(calibration['headings_deg'])}")
     if any(not -360.0 <= h <= 360.0 for h in calibration["headings_deg"]):
         raise ScenarioError(f"{source}: [flight.calibration] headings_deg must lie within "
-                            f"-360..360, not {calibration['headings_deg']!r}")
+                            f"-360..360, not {_describe(calibration['headings_deg'])}")
     errors = values["errors"]
     if len(errors["mounting_deg"]) != 3:
         raise ScenarioError(f"{source}: [errors] mounting_deg must be three angles (roll, "
-                            f"pitch, yaw), not {errors['mounting_deg']!r}")
+                            f"pitch, yaw), not {_describe(errors['mounting_deg'])}")
     talker = values["gps"]["talker"]
     if len(talker) != 2 or not talker.isascii() or not talker.isupper():
         raise ScenarioError(f"{source}: [gps] talker must be two upper-case letters, not "
-                            f"{talker!r}")
+                            f"{_describe(talker)}")
     flight = SimpleNamespace(**{name.split(".", 1)[1]: SimpleNamespace(**values[name])
                                 for name in SCHEMA if name.startswith("flight.")})
     channels = {name: SimpleNamespace(**values[f"channels.{name}"]) for name in CHANNEL_NAMES}
-    return SurveyScenario(
+    found = SurveyScenario(
         source=source, name=scenario["name"], seed=scenario["seed"], start=scenario["start"],
         clk_freq=scenario["clk_freq_hz"], max_frame=scenario["max_frame"],
         site=SimpleNamespace(**values["site"]), recording=SimpleNamespace(**values["recording"]),
@@ -464,6 +554,14 @@ def scenario_from_dict(data, *, source="<scenario>", folder=None):
         errors=SimpleNamespace(**errors), faults=faults,
         folder=None if folder is None else Path(folder), dipoles=dipoles,
         interference=SimpleNamespace(**inter), diurnal=SimpleNamespace(**values["diurnal"]))
+    parts = found.flight_parts()
+    total = sum(parts.values())
+    if not total <= MAX_SCENARIO_S:
+        where, longest = max(parts.items(), key=lambda item: item[1])
+        raise ScenarioError(f"{source}: the run lasts {total:,.0f} s, more than a scenario may "
+                            f"({MAX_SCENARIO_S:,.0f} s); the longest part: {where} "
+                            f"({longest:,.0f} s)")
+    return found
 
 
 def loads_scenario(text, *, source="<scenario>", folder=None):
@@ -471,7 +569,14 @@ def loads_scenario(text, *, source="<scenario>", folder=None):
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
-        raise ScenarioError(f"{source}: not valid TOML: {error}") from None
+        raise ScenarioError(f"{source}: not valid TOML: {shorten(error, 200)}") from None
+    except ValueError as error:         # an integer of more than 4300 digits
+        what = ("an integer with too many digits" if "digits" in str(error)
+                else shorten(error, 120))
+        raise ScenarioError(f"{source}: not a usable TOML file: {what}") from None
+    except RecursionError:
+        raise ScenarioError(f"{source}: not a usable TOML file: arrays or tables nested too "
+                            "deeply") from None
     return scenario_from_dict(data, source=source, folder=folder)
 
 
