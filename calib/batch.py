@@ -27,7 +27,8 @@ import numpy as np
 
 from .survey_errors import SurveyError
 
-__all__ = ["run_batch", "survey_job", "product_digest", "options_from_dict"]
+__all__ = ["run_batch", "survey_job", "product_digest", "options_from_dict",
+           "probe_scheduler"]
 
 
 def options_from_dict(values):
@@ -60,7 +61,8 @@ def _beside(card, name, given, disabled):
 
 def _is_survey_truth(path):
     try:
-        return "survey" in json.loads(Path(path).read_text(encoding="utf-8"))
+        truth = json.loads(Path(path).read_text(encoding="utf-8"))
+        return isinstance(truth, dict) and "survey" in truth
     except (OSError, ValueError):
         return False
 
@@ -124,6 +126,63 @@ def _fly(scenario, seed, out):
     return card
 
 
+#: Seconds to connect to a scheduler and to wait for its first bytes (a Dask scheduler
+#: writes its handshake as soon as a connection is made); the largest handshake believed.
+PROBE_TIMEOUT_S = 5.0
+MAX_HANDSHAKE_BYTES = 1 << 26
+
+
+def probe_scheduler(address, timeout=PROBE_TIMEOUT_S):
+    """Check that a Dask scheduler answers at ``address`` (``tcp://host:port``, ``host:port``
+    or ``tls://host:port``) before Dask is given it, and return the address for Dask. A
+    Dask scheduler writes its handshake (a little-endian 8-byte length, then that many
+    bytes) as soon as a connection is made: a port that says nothing (an HTTP server), one
+    that says something else (an SSH banner, read as a length of exabytes) or none at all
+    is refused in one line, not a hang or an out-of-memory."""
+    import socket
+    import struct
+    text = str(address).strip()
+    scheme, sep, rest = text.partition("://")
+    if not sep:
+        scheme, rest = "tcp", text
+    if scheme not in ("tcp", "tls"):
+        raise SurveyError(f"--scheduler {text[:80]!r}: give a running Dask scheduler's "
+                          "address as tcp://HOST:PORT (or tls://HOST:PORT); "
+                          f"{scheme[:20]}:// is not one")
+    host, colon, port_text = rest.rpartition(":")
+    host = host.strip("[]")
+    if not colon or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
+        raise SurveyError(f"--scheduler {text[:80]!r}: expected tcp://HOST:PORT with a port "
+                          "from 1 to 65535 (tcp://127.0.0.1:8786)")
+    port = int(port_text)
+    if scheme == "tls":
+        return text                        # a TLS listener waits for our hello: Dask's job
+    try:
+        with socket.create_connection((host, port), timeout=timeout) as sock:
+            sock.settimeout(timeout)
+            head = b""
+            while len(head) < 8:
+                chunk = sock.recv(8 - len(head))
+                if not chunk:
+                    break
+                head += chunk
+    except socket.timeout:
+        raise SurveyError(f"no Dask scheduler at {text[:80]}: something accepts the "
+                          f"connection but says nothing within {timeout:g} s (another "
+                          "service, such as an HTTP server?)") from None
+    except OSError as error:
+        raise SurveyError(f"cannot reach the Dask scheduler at {text[:80]}: "
+                          f"{error.strerror or error}") from None
+    if len(head) < 8:
+        raise SurveyError(f"no Dask scheduler at {text[:80]}: the connection was closed "
+                          "without a handshake")
+    length, = struct.unpack("<Q", head)
+    if not 0 < length <= MAX_HANDSHAKE_BYTES:
+        raise SurveyError(f"no Dask scheduler at {text[:80]}: another service answers there "
+                          f"(it began {head!r})")
+    return f"tcp://{rest}"
+
+
 def run_batch(jobs, *, scheduler=None, workers=2, serial=False):
     """Run ``jobs`` and return their records in the jobs' order (module docstring)."""
     jobs = list(jobs)
@@ -131,11 +190,12 @@ def run_batch(jobs, *, scheduler=None, workers=2, serial=False):
         return [survey_job(job) for job in jobs]
     from dask.distributed import Client, LocalCluster
     if scheduler is not None:
+        address = probe_scheduler(scheduler)
         try:
-            client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError, ValueError) as error:
-            raise SurveyError(f"cannot reach the Dask scheduler at {scheduler}: "
-                              f"{error}") from None
+            client = Client(address, timeout="10s")
+        except Exception as error:          # noqa: BLE001 - whatever Dask raises, one line
+            raise SurveyError(f"cannot use the Dask scheduler at {scheduler}: "
+                              f"{type(error).__name__}: {str(error)[:200]}") from None
         cluster = None
     else:
         if workers < 1:

@@ -64,6 +64,25 @@ HOVER_HEIGHT = 5.0
 ACTIVE_COSINE = 0.02
 BOX_GAP_S = 15.0
 MIN_BOX_S = 20.0
+#: A given ridge parameter must lie in the range ``ridge="auto"`` searches
+#: (tolles_lawson.RIDGE_GRID): below it the 18-term set's diagonal induced terms
+#: (u1² + u2² + u3² = 1 times the cesium's own reading) reproduce the measurement itself,
+#: noise, anomaly and all, and the "compensation" removes the survey.
+RIDGE_RANGE = (1e-6, 1e6)
+#: A given band's high edge at most this fraction of the cesium's rate (the automatic band's
+#: ceiling, tolles_lawson.BAND_CEILING), its low edge at least tolles_lawson.BAND_FLOOR_HZ,
+#: and high / low at least BAND_MIN_RATIO (half an octave of manoeuvres).
+BAND_MIN_RATIO = 1.5
+#: Diagnostics (:func:`_diagnose`): the compensated box's band RMS below this fraction of
+#: the cesium's own noise in that band is not a compensation; this share of consecutive
+#: cesium readings identical is a stuck reference (refused), this share a suspect one
+#: (warned); a median |compensated - IGRF| above this is not this place or date.
+NOISE_FLOOR_FRACTION = 0.3
+STUCK_REFUSE = 0.5
+STUCK_WARN = 0.05
+IGRF_MISFIT_NT = 2000.0
+#: A --truth must describe this flight: its origin within this of the first GPS fix.
+TRUTH_ORIGIN_M = 1000.0
 #: Files :func:`write_products` writes.
 SURVEY_FILES = ("report.md", "report.html", "survey.json", "samples.csv", "anomaly.nc",
                 "anomaly.tif", "map.png", "compensation.png", "levelling.png")
@@ -95,8 +114,12 @@ class SurveyOptions:
                 raise SurveyError(f"band must be two frequencies 0 < low < high (Hz), not "
                                   f"{low:g},{high:g}")
         if self.ridge != "auto" and not (isinstance(self.ridge, (int, float))
-                                         and math.isfinite(self.ridge) and self.ridge >= 0):
-            raise SurveyError(f"ridge must be 'auto' or a number >= 0, not {self.ridge!r}")
+                                         and not isinstance(self.ridge, bool)
+                                         and RIDGE_RANGE[0] <= self.ridge <= RIDGE_RANGE[1]):
+            raise SurveyError(f"ridge must be 'auto' or a number from {RIDGE_RANGE[0]:g} to "
+                              f"{RIDGE_RANGE[1]:g} (the range the automatic choice searches: "
+                              "below it the 18 terms reproduce the cesium's own reading and "
+                              f"the compensation removes the survey), not {self.ridge!r}")
         if self.spacing_m is not None and not self.spacing_m > 0:
             raise SurveyError(f"grid spacing must be > 0 m, not {self.spacing_m!r}")
         if self.grid_method not in ("spline", "eqs"):
@@ -268,6 +291,8 @@ class SurveyResult:
     scores: dict = field(default_factory=dict)   # against the truth, when given
     times: dict = field(default_factory=dict)    # seconds per step
     lag: dict = field(default_factory=dict)      # the lag correction (estimate_lag)
+    warnings: list = field(default_factory=list)  # why the result is not to be trusted
+    noise: dict = field(default_factory=dict)    # the cesium's noise (_diagnose)
 
     def on_lines(self):
         mask = np.zeros(len(self.t), bool)
@@ -277,9 +302,20 @@ class SurveyResult:
 
 
 def _check_path(path, what):
+    """``path`` a regular file (a folder, a device or a missing file said as such)."""
+    import stat
     path = Path(path)
-    if not path.is_file():
-        raise SurveyError(f"{path}: no such {what}")
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise SurveyError(f"{path}: no such {what}") from None
+    except OSError as error:
+        raise SurveyError(f"{path}: cannot read the {what} ({error.strerror or error})") \
+            from None
+    if stat.S_ISDIR(mode):
+        raise SurveyError(f"{path}: is a folder, not a {what}")
+    if not stat.S_ISREG(mode):
+        raise SurveyError(f"{path}: not a regular file (a device or a pipe), not a {what}")
     return path
 
 
@@ -313,10 +349,13 @@ def _survey(path, options):
 
     times = {}
     mark = _clock()
+    # The base station and the truth are read before the long work: their errors come first.
+    base = None
     if options.base_station is not None:
-        _check_path(options.base_station, "base-station file")
+        base = read_base_station(_check_path(options.base_station, "base-station file"))
+    truth = None
     if options.truth is not None:
-        read_truth(options.truth)
+        truth = read_truth(_check_path(options.truth, "truth file"))
     run = calibrate_card(path, ref="cesium", method="pso", seed=options.seed)
     if run.parsed.date is None:
         raise SurveyError(f"{run.parsed.name}: no ZDA date in the log: IGRF needs the date")
@@ -327,11 +366,8 @@ def _survey(path, options):
     mark = _clock()
     timing = cesium_times(parsed)
     ces = parsed.cesium
-    in_range = (ces.field > 1_000) & (ces.field < 1_000_000)
-    if not in_range.all():
-        notes.append(f"{int((~in_range).sum())} cesium readings outside 1,000-1,000,000 nT "
-                     "(no lock) left out")
-    valid = np.isfinite(timing.t) & in_range
+    warnings = []
+    valid = _screen_cesium(timing.t, ces.field, notes)
     t, raw = timing.t[valid], ces.field[valid]
     if timing.method != "rate":
         notes.append(f"cesium samples timed by the magnetometer lines around them (their "
@@ -368,6 +404,9 @@ def _survey(path, options):
     if in_box.sum() < 20 * rate:
         raise SurveyError(f"the calibration box {_tod(box[0])}-{_tod(box[1])} holds only "
                           f"{int(in_box.sum())} cesium samples")
+    _check_stuck(raw[in_box], box, warnings)
+    if options.band is not None:
+        _check_band(options.band, rate)
     fits = {}
     for terms in (16, 18):
         fits[terms] = tl.fit(t[in_box], cosines[in_box], raw[in_box], raw[in_box],
@@ -392,8 +431,7 @@ def _survey(path, options):
     igrf = igrf_total(date, track.lat, track.lon, track.alt)
     anomaly = compensated - igrf
     diurnal = None
-    if options.base_station is not None:
-        base = read_base_station(options.base_station)
+    if base is not None:
         epoch = _dt.datetime(date.year, date.month, date.day, tzinfo=_dt.timezone.utc)
         diurnal = diurnal_correction(base, epoch, t, max_gap_s=options.max_base_gap_s)
         anomaly = anomaly - diurnal
@@ -405,9 +443,26 @@ def _survey(path, options):
     if options.lag_s is None:
         lag, lag_table = estimate_lag(parsed, t, lines, anomaly, track.origin)
         lag_source = "crossovers" if lag is not None else "none"
+        if lag is not None and abs(lag) >= LAG_RANGE_S - 1e-9:
+            warnings.append(
+                f"the positions' lag was not found: the crossovers are least at the edge of "
+                f"the {-LAG_RANGE_S:g}..{LAG_RANGE_S:g} s scan ({lag:+.3f} s), not inside "
+                "it; the map is made without a lag correction (give it with --lag if you "
+                "know it; a compensation that removed the anomaly pins it there too)")
+            lag, lag_source = None, "not found"
         lag = lag or 0.0
     else:
         lag, lag_table, lag_source = float(options.lag_s), [], "given"
+        _check_lag(lag, lines, t, track)
+        best, scan = estimate_lag(parsed, t, lines, anomaly, track.origin)
+        if best is not None and abs(best) < LAG_RANGE_S - 1e-9:
+            given_rms = crossover_rms(parsed, t, lines, anomaly, track.origin, lag)[0]
+            best_rms = min(row[1] for row in scan)
+            if given_rms > LAG_WORSE * best_rms and given_rms > best_rms + LAG_WORSE_NT:
+                warnings.append(
+                    f"the lag given ({lag:g} s) leaves the crossovers {given_rms:.2f} nT RMS "
+                    f"apart, against {best_rms:.2f} nT at {best:+.3f} s (the lag they "
+                    "indicate): the map is smeared across the lines by the lag given")
     if lag:
         track = dataclasses.replace(georeference(parsed, t + lag, origin=track.origin), t=t)
         anomaly = anomaly + igrf
@@ -447,9 +502,169 @@ def _survey(path, options):
         anomaly=anomaly, lines=lines, levelling=levelling, levelled=levelled, grid=grid,
         grid_info=grid_summary(grid),
         calibration=run, notes=notes, times=times, lag=lag_record)
-    if options.truth is not None:
+    result.warnings = warnings + _diagnose(result)
+    if truth is not None:
+        _check_truth_flight(truth, options.truth, result)
         result.scores = score_against_truth(result, options.truth)
     return result
+
+
+def _screen_cesium(t, field, notes):
+    """The cesium readings to use: timed, and passed by the reference screen (the Earth's
+    range, isolated spikes such as a bit flip: :func:`~maglog.calib.screen.screen_reference`);
+    what it left out said in ``notes``."""
+    from .screen import screen_reference
+    valid = np.isfinite(t) & np.isfinite(field)
+    if valid.sum() < 10:
+        raise SurveyError(f"only {int(valid.sum())} timed cesium readings")
+    screen = screen_reference(t[valid], field[valid])
+    if screen.n_rejected:
+        notes.append(f"cesium {screen.summary()}: left out")
+    keep = np.zeros(len(t), bool)
+    keep[np.flatnonzero(valid)[screen.keep]] = True
+    if keep.sum() < 10:
+        raise SurveyError(f"only {int(keep.sum())} plausible cesium readings "
+                          f"({screen.summary()})")
+    return keep
+
+
+def _check_stuck(raw, box, warnings):
+    """A cesium that repeats its reading in the calibration box (where the manoeuvres change
+    the interference by nT every tenth of a second, and a reading has 0.001 nT steps) is
+    stuck: refused from STUCK_REFUSE of consecutive readings identical, warned from
+    STUCK_WARN."""
+    if raw.size < 2:
+        return
+    same = float(np.mean(np.diff(raw) == 0))
+    values, counts = np.unique(raw, return_counts=True)
+    common = float(values[np.argmax(counts)])
+    where = f"the calibration box {_tod(box[0])}-{_tod(box[1])}"
+    if same >= STUCK_REFUSE:
+        raise SurveyError(f"the cesium is stuck: {100 * same:.0f} % of its consecutive "
+                          f"readings in {where} are identical ({common:,.3f} nT most "
+                          "often): it measured no field to compensate or map")
+    if same >= STUCK_WARN:
+        warnings.append(f"the cesium repeats its reading in {100 * same:.0f} % of "
+                        f"consecutive samples in {where} ({common:,.3f} nT most often; a "
+                        "working one repeats in well under 1 %): a stuck or frozen "
+                        "reference; the compensation and the map are not to be trusted")
+
+
+def _check_band(band, rate):
+    """A given band against what the cesium's rate allows (the rule of --band)."""
+    from .tolles_lawson import BAND_CEILING, BAND_FLOOR_HZ
+    low, high = (float(b) for b in band)
+    ceiling = BAND_CEILING * rate
+    if not (BAND_FLOOR_HZ <= low and high <= ceiling and high >= BAND_MIN_RATIO * low):
+        raise SurveyError(
+            f"the band {low:g}-{high:g} Hz is not one this flight allows: it must run from at "
+            f"least {BAND_FLOOR_HZ:g} Hz to at most {BAND_CEILING:g} x the cesium's "
+            f"{rate:.4g} Hz ({ceiling:.3g} Hz), its high edge at least {BAND_MIN_RATIO:g} x "
+            "its low one")
+
+
+def _check_lag(lag, lines, t, track):
+    """A given lag against the flight: moving each sample by lag x speed along its line
+    must keep it nearer its own line than the next (the rule of --lag)."""
+    from .gridding import line_spacing
+    survey = [line for line in lines if line.kind == "line"]
+    if not survey or lag == 0:
+        return
+    on = np.zeros(len(t), bool)
+    for line in survey:
+        on |= (t >= line.start) & (t <= line.end)
+    on &= np.isfinite(track.north) & np.isfinite(track.east)
+    speeds = [line.speed_m_s for line in survey if math.isfinite(line.speed_m_s)]
+    if not speeds or on.sum() < 10:
+        return
+    speed = float(np.median(speeds))
+    try:
+        spacing = float(line_spacing(track.north[on], track.east[on])[0])
+    except (ValueError, SurveyError):
+        return
+    if not math.isfinite(spacing) or spacing <= 0:
+        return
+    limit = spacing / 2 / speed
+    if abs(lag) > limit:
+        raise SurveyError(f"the lag {lag:g} s is more than this flight allows: at "
+                          f"{speed:.3g} m/s it moves every sample {abs(lag) * speed:.0f} m "
+                          f"along its line, past half the {spacing:.0f} m line spacing "
+                          f"(at most {limit:.2f} s here)")
+
+
+def _noise_nT(t, raw):
+    """The cesium's own white noise (nT RMS) from its third differences (robust: their
+    median absolute deviation; smooth signals, the interference and anomalies at a 10-Hz
+    rate, hardly reach them), on gap-free stretches."""
+    period = float(np.median(np.diff(t)))
+    pieces = np.split(raw, np.flatnonzero(np.diff(t) > 2.5 * period) + 1)
+    d3 = np.concatenate([np.diff(p, 3) for p in pieces if p.size > 3] or [np.zeros(0)])
+    if d3.size < 10:
+        return math.nan
+    return float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / math.sqrt(20.0))
+
+
+def _diagnose(result):
+    """Warnings where the result is implausible against its own diagnostics: a compensation
+    that removes more than the cesium's own noise (it reproduced the measurement, not the
+    interference: improvement ratios of thousands), and an anomaly thousands of nT off
+    IGRF (the positions or the date are not this flight's)."""
+    from .tolles_lawson import bandpass
+    out = []
+    box = (result.t >= result.box[0]) & (result.t <= result.box[1])
+    band, rate = result.tl.band, result.timing.rate_hz
+    noise = _noise_nT(result.t, result.raw)
+    try:
+        before = float(np.std(bandpass(result.raw[box], rate, band)))
+        after = float(np.std(bandpass(result.compensated[box], rate, band)))
+    except SurveyError:
+        before = after = math.nan
+    expected = noise * math.sqrt(2 * (band[1] - band[0]) / rate)
+    result.noise = {"cesium_noise_nT": noise, "band_noise_nT": expected}
+    if math.isfinite(expected) and expected > 0 and after < NOISE_FLOOR_FRACTION * expected:
+        ratio = before / after if after > 0 else math.inf
+        out.append(f"the compensation is implausible: in the calibration box it leaves "
+                   f"{after:.3g} nT RMS in the {band[0]:.3g}-{band[1]:.3g} Hz band "
+                   f"(improvement ratio {ratio:.3g}), below the cesium's own noise there "
+                   f"({expected:.3g} nT, from {noise:.3g} nT white noise): the model "
+                   "reproduced the measurement itself, not the interference, and the map "
+                   "lost the anomaly with it (a ridge, band or box that does not "
+                   "determine the terms)")
+    misfit = float(np.nanmedian(np.abs(result.compensated - result.igrf)))
+    if misfit > IGRF_MISFIT_NT:
+        out.append(f"the field is {misfit:,.0f} nT (median) off IGRF at the GPS positions "
+                   "and date: the positions (latitude and longitude swapped? a wrong "
+                   "hemisphere?), the date or the reference are not this flight's, and the "
+                   "anomaly map is not one")
+    return out
+
+
+def _check_truth_flight(truth, path, result):
+    """A --truth must describe this flight: the same date, an origin at the first GPS fix,
+    and every line found inside one of the truth's lines of the same kind."""
+    when = _dt.datetime.fromisoformat(truth["timestamp"]).astimezone(_dt.timezone.utc)
+    if result.date is not None and when.date() != result.date:
+        raise SurveyError(f"{path}: the truth is of a flight on {when.date()}, the log's is "
+                          f"on {result.date}: not this flight's truth")
+    origin = truth["survey"]["origin"]
+    lat0, lon0 = result.track.origin
+    north = (origin["lat_deg"] - lat0) * METRES_PER_DEGREE
+    east = (origin["lon_deg"] - lon0) * METRES_PER_DEGREE * math.cos(math.radians(lat0))
+    distance = math.hypot(north, east)
+    if not distance <= TRUTH_ORIGIN_M:
+        raise SurveyError(f"{path}: the truth's site is {distance / 1e3:,.1f} km from the "
+                          f"log's first GPS fix: not this flight's truth")
+    start = when - when.replace(hour=0, minute=0, second=0, microsecond=0)
+    offset = start.total_seconds()
+    spans = [(line["kind"], line["start_s"] + offset, line["end_s"] + offset)
+             for line in truth["survey"]["lines"]]
+    for line in result.lines:
+        middle = (line.start + line.end) / 2
+        if not any(kind == line.kind and a - 5 <= middle <= b + 5 for kind, a, b in spans):
+            raise SurveyError(f"{path}: the log's {line.kind} {line.index + 1} "
+                              f"({_tod(line.start)}-{_tod(line.end)} UTC) is not one of the "
+                              f"truth's {sum(k == line.kind for k, _, _ in spans)} "
+                              f"{line.kind}s: not this flight's truth")
 
 
 #: The lags :func:`estimate_lag` tries (s): coarse steps over +-LAG_RANGE_S, then fine ones.
@@ -469,16 +684,10 @@ def estimate_lag(parsed, t, lines, anomaly, origin):
     The lag is the one that minimises the crossover RMS of the (unlevelled) anomaly: a scan
     in LAG_STEP_S over +-LAG_RANGE_S, then LAG_FINE_S steps around the best. Returns
     (lag_s, [(lag_s, rms_nT, crossovers)]); (None, ...) when fewer than three crossovers
-    leave no RMS to minimise."""
-    from .georef import georeference
-    from .levelling import crossovers
-
+    leave no RMS to minimise. A lag at the scan's edge (+-LAG_RANGE_S) is returned as it is,
+    not refined: the minimum lies outside the scan, and the caller reports it as not found."""
     def rms(lag):
-        shifted = georeference(parsed, t + lag, origin=origin)
-        cross = crossovers(lines, t, shifted.north, shifted.east, anomaly)
-        d = np.asarray([c[-1] for c in cross], float)
-        d = d - d.mean() if d.size else d
-        return (float(np.sqrt(np.mean(d ** 2))) if d.size > 2 else math.inf), int(d.size)
+        return crossover_rms(parsed, t, lines, anomaly, origin, lag)
 
     scan = []
     for lag in np.arange(-LAG_RANGE_S, LAG_RANGE_S + LAG_STEP_S / 2, LAG_STEP_S):
@@ -486,11 +695,32 @@ def estimate_lag(parsed, t, lines, anomaly, origin):
     best = min(scan, key=lambda row: row[1])
     if not math.isfinite(best[1]):
         return None, scan
+    if abs(best[0]) >= LAG_RANGE_S - 1e-9:
+        return best[0], scan              # at the edge: the caller says "not found"
     for lag in np.arange(best[0] - LAG_STEP_S, best[0] + LAG_STEP_S + LAG_FINE_S / 2,
                          LAG_FINE_S):
-        scan.append((round(float(lag), 6), *rms(float(lag))))
+        if abs(lag) <= LAG_RANGE_S + 1e-9:
+            scan.append((round(float(lag), 6), *rms(float(lag))))
     best = min(scan, key=lambda row: row[1])
     return best[0], sorted(scan)
+
+
+def crossover_rms(parsed, t, lines, anomaly, origin, lag):
+    """(RMS about their mean of the crossover differences, their number) with the positions
+    taken ``lag`` s later; the RMS is inf below three crossovers."""
+    from .georef import georeference
+    from .levelling import crossovers
+    shifted = georeference(parsed, t + lag, origin=origin)
+    cross = crossovers(lines, t, shifted.north, shifted.east, anomaly)
+    d = np.asarray([c[-1] for c in cross], float)
+    d = d - d.mean() if d.size else d
+    return (float(np.sqrt(np.mean(d ** 2))) if d.size > 2 else math.inf), int(d.size)
+
+
+#: A given lag whose crossover RMS exceeds the best lag's by this factor (and by
+#: LAG_WORSE_NT) is warned about.
+LAG_WORSE = 2.0
+LAG_WORSE_NT = 0.5
 
 
 def _speed(track):
@@ -529,7 +759,78 @@ def read_truth(path):
         raise SurveyError(f"{path}: not a truth file ({error})") from None
     if not isinstance(truth, dict) or "survey" not in truth:
         raise SurveyError(f"{path}: the truth has no survey section (not a survey scenario)")
+    _check_truth(truth, path)
     return truth
+
+
+def _truth_value(truth, path, keys, kind="number", low=-math.inf, high=math.inf, size=None):
+    """``truth[k0][k1]...`` checked: a finite number within [low, high] (``kind`` "number"),
+    a list of ``size`` such numbers ("vector"), a dict, a list or a string; else a
+    SurveyError naming the file and the key."""
+    value, where = truth, []
+    for key in keys:
+        where.append(str(key))
+        if isinstance(key, int):
+            ok = isinstance(value, list) and -len(value) <= key < len(value)
+        else:
+            ok = isinstance(value, dict) and key in value
+        if not ok:
+            raise SurveyError(f"{path}: the truth has no {'.'.join(where)} (not the truth of "
+                              "a survey scenario, or a damaged one)")
+        value = value[key]
+    name = ".".join(where)
+
+    def number(v):
+        return (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                and low <= v <= high)
+    if kind == "number" and not number(value):
+        raise SurveyError(f"{path}: the truth's {name} must be a number"
+                          + (f" within {low:g}..{high:g}" if math.isfinite(low) or
+                             math.isfinite(high) else "") + f", not {str(value)[:40]!r}")
+    if kind == "vector" and not (isinstance(value, list) and len(value) == size
+                                 and all(number(v) for v in value)):
+        raise SurveyError(f"{path}: the truth's {name} must be {size} numbers, not "
+                          f"{str(value)[:60]!r}")
+    for wanted, python in (("dict", dict), ("list", list), ("string", str)):
+        if kind == wanted and not isinstance(value, python):
+            raise SurveyError(f"{path}: the truth's {name} must be a {wanted}, not "
+                              f"{type(value).__name__}")
+    return value
+
+
+def _check_truth(truth, path):
+    """Every value :func:`score_against_truth` and :func:`_check_truth_flight` read, of the
+    right type and range (a damaged or hand-edited truth.json ends in one line)."""
+    value = lambda *keys, **kw: _truth_value(truth, path, keys, **kw)
+    stamp = value("timestamp", kind="string")
+    try:
+        when = _dt.datetime.fromisoformat(stamp)
+    except ValueError:
+        raise SurveyError(f"{path}: the truth's timestamp {stamp[:40]!r} is not an ISO date "
+                          "and time") from None
+    if when.tzinfo is None:
+        raise SurveyError(f"{path}: the truth's timestamp {stamp[:40]!r} has no time zone")
+    value("reference", "cesium_noise_nT", low=0)
+    value("survey", kind="dict")
+    value("survey", "origin", kind="dict")
+    value("survey", "origin", "lat_deg", low=-90, high=90)
+    value("survey", "origin", "lon_deg", low=-180, high=180)
+    value("survey", "origin", "ground_alt_m", low=-1e4, high=1e5)
+    value("survey", "igrf_site_ned_nT", kind="vector", size=3)
+    for k in range(len(value("survey", "dipoles", kind="list"))):
+        for key in ("north_m", "east_m", "depth_m"):
+            value("survey", "dipoles", k, key, low=-1e7, high=1e7)
+        value("survey", "dipoles", k, "moment_ned_Am2", kind="vector", size=3)
+    for key in ("start_seconds_of_day", "lon_deg", "amplitude_nT", "pulsation_nT"):
+        value("survey", "diurnal", key, low=-1e6, high=1e6)
+    value("survey", "diurnal", "pulsation_period_s", low=1e-3, high=1e9)
+    for k in range(len(value("survey", "lines", kind="list"))):
+        kind = value("survey", "lines", k, "kind", kind="string")
+        if kind not in ("line", "tie"):
+            raise SurveyError(f"{path}: the truth's survey.lines.{k}.kind must be line or "
+                              f"tie, not {kind[:20]!r}")
+        start = value("survey", "lines", k, "start_s", low=-1e6, high=1e7)
+        value("survey", "lines", k, "end_s", low=start, high=1e7)
 
 
 def _truth_local(survey, lat, lon, alt):
@@ -554,6 +855,10 @@ def score_against_truth(result, truth_path):
     north, east, up = _truth_local(survey, track.lat, track.lon, track.alt)
     true_anomaly = anomaly_total(survey, north, east, up)
     true_diurnal = diurnal_nT(survey, result.t - offset)
+    if not (np.all(np.isfinite(true_anomaly[np.isfinite(north)]))
+            and np.all(np.isfinite(true_diurnal))):
+        raise SurveyError(f"{truth_path}: the truth's sources or diurnal give no finite field "
+                          "along the flight (a source on the track?): cannot score against it")
     scalar = result.igrf + true_anomaly + true_diurnal
     box = (result.t >= result.box[0]) & (result.t <= result.box[1]) & np.isfinite(scalar)
     noise = float(truth["reference"]["cesium_noise_nT"])
@@ -586,7 +891,10 @@ def score_against_truth(result, truth_path):
     height = float(np.nanmean(track.alt[on]))
     tn, te, tu = _truth_local(survey, lat, lon, np.full(lat.shape, height))
     truth_grid = anomaly_total(survey, tn.ravel(), te.ravel(), tu.ravel()).reshape(gn.shape)
-    inside = np.isfinite(values)
+    inside = np.isfinite(values) & np.isfinite(truth_grid)
+    if not inside.any():
+        raise SurveyError(f"{truth_path}: the truth's sources give no finite field on the "
+                          "map's nodes: cannot score against it")
     diff = values[inside] - truth_grid[inside]
     scores["grid_rms_nT"] = float(np.sqrt(np.mean((diff - diff.mean()) ** 2)))
     scores["grid_offset_nT"] = float(diff.mean())
@@ -677,7 +985,8 @@ def _summary(result):
            "vector_calibration": {
                "rms_before_nT": result.calibration.summary()["rms_before_nT"],
                "rms_after_nT": result.calibration.summary()["rms_after_nT"]},
-           "notes": list(result.notes), "times_s": result.times,
+           "warnings": list(result.warnings), "notes": list(result.notes),
+           "cesium_noise": dict(result.noise), "times_s": result.times,
            "options": {k: (str(v) if isinstance(v, Path) else v)
                        for k, v in vars(result.options).items()}}
     from .gridding import peak
@@ -823,6 +1132,9 @@ def _report_lines(result, figures):
            f"- vector magnetometer calibrated against the cesium: "
            f"{figures['vector_calibration']['rms_before_nT']:.1f} -> "
            f"{figures['vector_calibration']['rms_after_nT']:.2f} nT RMS", ""]
+    if result.warnings:
+        out += ["## Warnings: this result is not to be trusted", ""] + \
+            [f"- **{warning}**" for warning in result.warnings] + [""]
     if result.notes:
         out += ["## Notes", ""] + [f"- {note}" for note in result.notes] + [""]
     out += ["## Tolles–Lawson compensation", "",
@@ -876,7 +1188,9 @@ def _report_lines(result, figures):
              "samples' times (" + ("given" if result.lag["source"] == "given" else
                                    "the lag that minimises the crossovers; the GGA line "
                                    "arrives after its fix") + ")."
-             if result.lag["source"] != "none" else
+             if result.lag["source"] not in ("none", "not found") else
+             "Lag correction: none (not found: the crossovers are least at the edge of "
+             "the scan)." if result.lag["source"] == "not found" else
              "Lag correction: none (no crossovers to estimate it from)."),
             (f"Levelling on {lev['crossovers']} crossovers: RMS "
              f"{lev['rms_before_nT']:.2f} nT before, {lev['rms_after_nT']:.2f} nT after."

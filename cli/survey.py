@@ -51,14 +51,17 @@ def _band_arg(text):
 
 
 def _ridge_arg(text):
+    from ..calib.survey import RIDGE_RANGE
     if text == "auto":
         return text
     try:
         value = float(text)
     except ValueError:
         value = -1.0
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected auto or a number >= 0, not {text!r}")
+    if not RIDGE_RANGE[0] <= value <= RIDGE_RANGE[1]:
+        raise argparse.ArgumentTypeError(
+            f"expected auto or a number from {RIDGE_RANGE[0]:g} to {RIDGE_RANGE[1]:g} (the "
+            f"range auto searches), not {text[:40]!r}")
     return value
 
 
@@ -179,6 +182,9 @@ def _cmd_survey(args):
         if record["ok"]:
             print(f"{record['name']}: report {Path(record['out']) / 'report.md'}, map "
                   f"{Path(record['out']) / 'map.png'}")
+            # What makes the result untrustworthy, as the report says it.
+            for warning in (record["figures"] or {}).get("warnings", []):
+                print(f"warning: {record['name']}: {warning}")
     failed = [r for r in records if not r["ok"]]
     if failed and len(jobs) == 1:
         raise CliError(failed[0]["error"])
@@ -224,9 +230,12 @@ def register(commands):
                              "default: %(default)s)")
     survey.add_argument("--band", type=_band_arg, default=None, metavar="LOW,HIGH",
                         help="the compensation's band-pass in Hz (default: from the "
-                             "manoeuvres' frequencies)")
+                             "manoeuvres' frequencies); LOW at least 0.02 Hz, HIGH at most "
+                             "0.45 x the cesium's rate and at least 1.5 x LOW, the box at "
+                             "least two periods of LOW long")
     survey.add_argument("--ridge", type=_ridge_arg, default="auto",
-                        help="ridge parameter, or auto (blocked cross-validation; default)")
+                        help="ridge parameter from 1e-06 to 1e+06 (the range auto "
+                             "searches), or auto (blocked cross-validation; default)")
     survey.add_argument("--box", type=_box_arg, default=None, metavar="HH:MM:SS-HH:MM:SS",
                         help="the calibration box in UTC (default: found from the hovering "
                              "manoeuvres)")
@@ -239,8 +248,10 @@ def register(commands):
                         help="levelling: 0 a constant per line, 1 a linear drift per line "
                              "(default: %(default)s)")
     survey.add_argument("--lag", type=_float_in(-10, 10), default=None, metavar="S",
-                        help="the positions' lag behind the samples' times, s (default: "
-                             "estimated from the crossovers)")
+                        help="the positions' lag behind the samples' times, s: at most what "
+                             "moves a sample half the line spacing along its line (default: "
+                             "estimated from the crossovers within +-1 s; at the scan's edge "
+                             "it is reported as not found)")
     survey.add_argument("--seed", type=_int_in(0, SEED_MAX), default=0,
                         help="the vector calibration's PSO seed (default: 0)")
     survey.add_argument("--no-deinterf", action="store_true",

@@ -16,6 +16,7 @@ per cent: bench/survey.py):
 import copy
 import json
 import math
+import re
 import tomllib
 from pathlib import Path
 
@@ -284,3 +285,281 @@ def test_cli_errors_are_one_line(argv, message, tmp_path, capsys, monkeypatch):
     assert main(["survey", "-o", str(tmp_path / "out")] + argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+# --- issue 23: results the survey cannot trust, and inputs it cannot use -----------------
+
+def _survey_cli(argv, capsys):
+    """``maglog survey`` in process: (exit status, stdout, stderr)."""
+    from maglog.cli.main import main
+    try:
+        status = main(["survey", *argv])
+    except SystemExit as exit_:
+        status = exit_.code
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def _one_error_line(status, err, message):
+    lines = err.strip().splitlines()
+    assert status == 1 and lines[-1].startswith("maglog: error: "), err
+    assert message in lines[-1], lines[-1]
+    assert "Traceback" not in err and "unexpected" not in err
+
+
+def _warned_everywhere(out_dir, printed, words):
+    """The warning with ``words`` in the printed output, the report and survey.json."""
+    assert any(line.startswith("warning: ") and words in line
+               for line in printed.splitlines()), printed
+    report = (out_dir / "report.md").read_text()
+    assert "## Warnings: this result is not to be trusted" in report and words in report
+    figures = json.loads((out_dir / "survey.json").read_text())
+    assert any(words in w for w in figures["warnings"]), figures["warnings"]
+    return figures
+
+
+def _edit_cesium(log, edit):
+    """The log with each cesium reading ``k`` (nT) replaced by ``edit(k, value)``."""
+    out, k = [], 0
+    for line in log.splitlines(keepends=True):
+        if line[:2] == b"$ " and b"," in line:
+            value, signal = line[2:].rstrip(b"\r\n").split(b",")
+            line = b"$ %09.3f,%s\r\n" % (edit(k, float(value)), signal)
+            k += 1
+        out.append(line)
+    return b"".join(out)
+
+
+def _box_readings(flight):
+    """Indices of the cesium readings inside the scenario's calibration box."""
+    truth = json.loads(flight["truth"].read_text())
+    phase = next(p for p in truth["flight"]["phases"] if p["name"] == "calibration")
+    parsed = parse_log(flight["log"].read_bytes())
+    timing = sv.cesium_times(parsed)
+    day = truth["timestamp"][11:19]
+    offset = sum(int(x) * f for x, f in zip(day.split(":"), (3600, 60, 1)))
+    return np.flatnonzero((timing.t > offset + phase["start_s"] + 5)
+                          & (timing.t < offset + phase["end_s"] - 5))
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda t: t.update(survey=None), "the truth's survey must be a dict, not NoneType"),
+    (lambda t: t["survey"].pop("origin"), "the truth has no survey.origin"),
+    (lambda t: t["survey"]["origin"].update(lat_deg="47"), "survey.origin.lat_deg must be a "
+                                                          "number"),
+    (lambda t: t["survey"]["origin"].update(lat_deg=91.0), "within -90..90"),
+    (lambda t: t["survey"].update(dipoles={}), "survey.dipoles must be a list"),
+    (lambda t: t["survey"]["dipoles"][0].update(moment_ned_Am2=[1, 2]),
+     "survey.dipoles.0.moment_ned_Am2 must be 3 numbers"),
+    (lambda t: t.update(timestamp="yesterday"), "timestamp 'yesterday' is not an ISO date"),
+    (lambda t: t["reference"].pop("cesium_noise_nT"), "no reference.cesium_noise_nT"),
+    (lambda t: t["survey"]["lines"][0].update(end_s=-1.0), "survey.lines.0.end_s"),
+])
+def test_a_damaged_truth_is_refused_in_one_line(flight, tmp_path, edit, message):
+    truth = json.loads(flight["truth"].read_text())
+    edit(truth)
+    path = tmp_path / "truth.json"
+    path.write_text(json.dumps(truth))
+    with pytest.raises(SurveyError, match=re.escape(message)):
+        sv.read_truth(path)
+
+
+def test_a_truth_of_another_flight_is_refused(flight, result, tmp_path):
+    truth = json.loads(flight["truth"].read_text())
+    sv._check_truth_flight(truth, "truth.json", result)          # its own: accepted
+    cases = []
+    other = copy.deepcopy(truth)
+    other["timestamp"] = "2026-06-02T10:00:00+00:00"
+    cases.append((other, "the truth is of a flight on 2026-06-02, the log's is on 2026-06-01"))
+    other = copy.deepcopy(truth)
+    other["survey"]["origin"]["lat_deg"] += 0.5
+    cases.append((other, "the truth's site is 55.7 km from the log's first GPS fix"))
+    other = copy.deepcopy(truth)
+    for line in other["survey"]["lines"]:
+        line["start_s"] += 300
+        line["end_s"] += 300
+    cases.append((other, "is not one of the truth's 4 lines: not this flight's truth"))
+    for other, message in cases:
+        with pytest.raises(SurveyError, match=re.escape(message)):
+            sv._check_truth_flight(other, "truth.json", result)
+
+
+@pytest.mark.parametrize("ridge", [0.0, -0.0, 1e-300, 1e-9, 1e7, True])
+def test_a_ridge_outside_the_searched_range_is_refused(ridge):
+    with pytest.raises(SurveyError, match="from 1e-06 to 1e\\+06"):
+        sv.SurveyOptions(ridge=ridge).check()
+
+
+@pytest.mark.parametrize("value", ["0", "-0", "1e-300", "1e-7", "2e6"])
+def test_cli_refuses_a_ridge_outside_the_searched_range(value, tmp_path, capsys):
+    status, _, err = _survey_cli(["card.img", "-o", str(tmp_path), "--ridge", value], capsys)
+    assert status == 2 and "expected auto or a number from 1e-06 to 1e+06" in err
+
+
+def test_a_band_the_cesium_rate_does_not_allow_is_refused(flight, tmp_path, capsys):
+    # 4.9-5 Hz was accepted (below the 10-Hz cesium's Nyquist) and gave the map of
+    # --ridge 0: the band holds only noise, which the 18 terms reproduce.
+    status, _, err = _survey_cli([str(flight["log"]), "-o", str(tmp_path / "out"),
+                                  "--no-deinterf", "--band", "4.9,5"], capsys)
+    _one_error_line(status, err, "the band 4.9-5 Hz is not one this flight allows")
+    assert "at most 0.45 x the cesium's 10 Hz (4.5 Hz)" in err
+
+
+def test_a_lag_beyond_half_the_line_spacing_is_refused(flight):
+    with pytest.raises(SurveyError, match="the lag 7 s is more than this flight allows"):
+        sv.survey_card(flight["log"], sv.SurveyOptions(lag_s=7.0, compare_deinterf=False))
+
+
+def test_a_given_lag_the_crossovers_contradict_is_warned(flight, tmp_path, capsys):
+    out = tmp_path / "out"
+    status, printed, err = _survey_cli([str(flight["log"]), "-o", str(out), "--no-deinterf",
+                                        "--lag", "1.0"], capsys)
+    assert status == 0, err
+    _warned_everywhere(out, printed, "the lag given (1 s) leaves the crossovers")
+
+
+def test_an_implausible_compensation_is_warned(flight, tmp_path, capsys):
+    """A band above the manoeuvres (1-4 Hz) holds mostly the cesium's noise: the 18 terms
+    reproduce it (their diagonal induced terms sum to the reading itself) and the box's
+    residual falls below that noise. Said in the printed output, the report and
+    survey.json."""
+    out = tmp_path / "out"
+    status, printed, err = _survey_cli([str(flight["log"]), "-o", str(out), "--no-deinterf",
+                                        "--band", "1,4"], capsys)
+    assert status == 0, err
+    figures = _warned_everywhere(out, printed, "the compensation is implausible")
+    noise = figures["cesium_noise"]["cesium_noise_nT"]
+    assert noise == pytest.approx(0.05, rel=0.5)          # the scenario's cesium noise
+
+
+def test_defaults_give_no_warning(result):
+    assert result.warnings == []
+    assert result.noise["cesium_noise_nT"] == pytest.approx(0.05, rel=0.5)
+
+
+def test_a_stuck_cesium_is_refused(flight, tmp_path):
+    log = tmp_path / "LOG00001.TXT"
+    log.write_bytes(_edit_cesium(flight["log"].read_bytes(), lambda k, v: 48400.0))
+    with pytest.raises(SurveyError, match="the cesium is stuck: 100 % of its consecutive "
+                                          "readings in the calibration box"):
+        sv.survey_card(log, sv.SurveyOptions(compare_deinterf=False))
+
+
+def test_a_cesium_that_repeats_its_readings_is_warned(flight, tmp_path, capsys):
+    data = flight["log"].read_bytes()
+    values = []
+
+    def freeze(k, value):              # every third reading repeats the one before
+        values.append(value if k % 3 else (values[-1] if values else value))
+        return values[-1]
+    log = tmp_path / "LOG00001.TXT"
+    log.write_bytes(_edit_cesium(data, freeze))
+    out = tmp_path / "out"
+    status, printed, err = _survey_cli([str(log), "-o", str(out), "--no-deinterf",
+                                        "--no-truth", "--no-base"], capsys)
+    assert status == 0, err
+    _warned_everywhere(out, printed, "the cesium repeats its reading in 33 % of")
+
+
+def test_a_lag_at_the_edge_of_its_scan_is_not_found(flight, tmp_path, capsys, monkeypatch):
+    """The scan made narrower than the flight's lag (0.24 s): the crossovers are least at
+    its edge, which is no minimum. The lag is "not found", none is applied, and that is
+    said everywhere."""
+    monkeypatch.setattr(sv, "LAG_RANGE_S", 0.1)
+    out = tmp_path / "out"
+    status, printed, err = _survey_cli([str(flight["log"]), "-o", str(out), "--no-deinterf"],
+                                       capsys)
+    assert status == 0, err
+    figures = _warned_everywhere(out, printed, "the positions' lag was not found")
+    assert figures["lag"] == {"lag_s": 0.0, "source": "not found"}
+    assert "Lag correction: none (not found" in (out / "report.md").read_text()
+
+
+def test_a_cesium_spike_in_the_box_is_screened(flight, result, tmp_path):
+    """One reading of 99,999.999 nT in the calibration box: screened out of the survey's own
+    samples too (it gave an improvement ratio of 6.9e6 and the map of --ridge 0)."""
+    box = _box_readings(flight)
+    spike = int(box[len(box) // 2])
+    log = tmp_path / "LOG00001.TXT"
+    log.write_bytes(_edit_cesium(flight["log"].read_bytes(),
+                                 lambda k, v: 99999.999 if k == spike else v))
+    spiked = sv.survey_card(log, sv.SurveyOptions(truth=flight["truth"],
+                                                  base_station=flight["base"],
+                                                  compare_deinterf=False))
+    assert any("99,999.999 nT" in note for note in spiked.notes)
+    assert spiked.warnings == []
+    ours = sv.summary(spiked)["compensation"]["maglog TL18"]["improvement_ratio"]
+    assert 10 < ours < 100
+    assert spiked.scores["grid_rms_nT"] < 2 * result.scores["grid_rms_nT"] + 0.5
+
+
+def test_swapped_latitude_and_longitude_are_warned(flight, tmp_path):
+    from maglog.sim.stimulus.sentences import nmea_sentence
+
+    def swap(line):
+        fields = line[1:line.rindex(b"*")].decode().split(",")
+        lat = float(fields[2][:2]) + float(fields[2][2:]) / 60
+        lon = float(fields[4][:3]) + float(fields[4][3:]) / 60
+        fields[2] = f"{int(lon):02d}{(lon - int(lon)) * 60:08.5f}"
+        fields[4] = f"{int(lat):03d}{(lat - int(lat)) * 60:08.5f}"
+        return nmea_sentence(",".join(fields))
+    log = tmp_path / "LOG00001.TXT"
+    log.write_bytes(b"".join(swap(line) if b"GGA," in line and b",N," in line else line
+                             for line in flight["log"].read_bytes().splitlines(keepends=True)))
+    swapped = sv.survey_card(log, sv.SurveyOptions(compare_deinterf=False))
+    assert any("off IGRF at the GPS positions" in w and "swapped?" in w
+               for w in swapped.warnings), swapped.warnings
+    with pytest.raises(SurveyError, match="km from the log's first GPS fix"):
+        sv._check_truth_flight(json.loads(flight["truth"].read_text()), "truth.json", swapped)
+
+
+@pytest.mark.parametrize("base, message", [
+    ("/dev/null", "/dev/null: not a regular file (a device or a pipe), not a base-station "
+                  "file"),
+    ("{tmp}", "is a folder, not a base-station file"),
+    ("{tmp}/none.csv", "none.csv: no such base-station file"),
+])
+def test_cli_says_what_is_wrong_with_the_base_station_file(flight, tmp_path, capsys, base,
+                                                           message):
+    status, _, err = _survey_cli([str(flight["log"]), "-o", str(tmp_path / "out"),
+                                  "--base", base.format(tmp=tmp_path)], capsys)
+    _one_error_line(status, err, message)
+
+
+def test_scheduler_addresses_that_are_no_scheduler(flight, tmp_path, capsys):
+    import http.server
+    import socket
+    import threading
+    from maglog.calib.batch import probe_scheduler
+
+    httpd = http.server.HTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    banner = socket.socket()
+    banner.bind(("127.0.0.1", 0))
+    banner.listen()
+
+    def say_hello():
+        conn, _ = banner.accept()
+        conn.sendall(b"SSH-2.0-OpenSSH_9.2\r\n")
+        conn.close()
+    threading.Thread(target=say_hello, daemon=True).start()
+    closed = socket.socket()
+    closed.bind(("127.0.0.1", 0))
+    free_port = closed.getsockname()[1]
+    closed.close()
+    try:
+        with pytest.raises(SurveyError, match="says nothing within 0.5 s"):
+            probe_scheduler(f"tcp://127.0.0.1:{httpd.server_port}", timeout=0.5)
+        with pytest.raises(SurveyError, match="another service answers there"):
+            probe_scheduler(f"127.0.0.1:{banner.getsockname()[1]}")
+        with pytest.raises(SurveyError, match="cannot reach the Dask scheduler"):
+            probe_scheduler(f"tcp://127.0.0.1:{free_port}")
+        for address in ("tcp://127.0.0.1", "tcp://127.0.0.1:99999", "x"):
+            with pytest.raises(SurveyError, match="expected tcp://HOST:PORT"):
+                probe_scheduler(address)
+    finally:
+        httpd.shutdown()
+        banner.close()
+    status, _, err = _survey_cli([str(flight["log"]), "-o", str(tmp_path / "out"),
+                                  "--scheduler", "inproc://x"], capsys)
+    _one_error_line(status, err, "inproc:// is not one")
