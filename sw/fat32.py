@@ -15,8 +15,11 @@ Decisions beyond the specification's letter:
   implausible hint is replaced by cluster 2, each with a line in :attr:`Volume.notes`. An
   FSInfo sector with bad signatures is noted, the free count recounted, and the sector is
   never written: what was not understood is not overwritten.
-* A volume whose clean-shutdown bit is clear mounts (with a note): the power-loss rule
-  leaves at most lost clusters behind, and the logger must keep recording.
+* A volume whose clean-shutdown bit is clear mounts (with a note) and is repaired as
+  ``fsck.fat`` would (:meth:`Volume.repair`: chains trimmed to their files' sizes, lost
+  clusters freed, FAT 2 made equal to FAT 1, the free count recounted), then marked clean.
+  Damage no power cut causes is not guessed at: the volume mounts, the logger keeps
+  recording, and it is never marked clean (:attr:`Volume.damage`).
 * Only the primary FSInfo is kept up to date; the backup (sector 7) is the format-time copy.
 * At most ``fat_cache_sectors`` FAT sectors stay in memory (least recently used evicted
   first), so a long recording does not accumulate the FAT: a sector with changes not yet on
@@ -499,14 +502,21 @@ class Volume:
         self._anchors = set()           # FAT sectors linking synced chains to fresh clusters
         self._dirty_marked = False
         self._files = []
+        #: Damage a dirty volume's repair found and did not repair (see :meth:`repair`):
+        #: while it is not empty the volume is never marked clean.
+        self.damage = []
+        #: What the repair did: ``trimmed`` chains, ``freed`` lost clusters, ``fat_copied``
+        #: FAT sectors made equal to FAT 1's, ``free_was``/``free_count`` (None: no repair).
+        self.repaired = None
 
     # -- mounting ---------------------------------------------------------------------------
 
     @classmethod
-    async def mount(cls, device, *, fat_cache_sectors=FAT_CACHE_SECTORS):
+    async def mount(cls, device, *, fat_cache_sectors=FAT_CACHE_SECTORS, repair=True):
         """Find the FAT32 partition, check it, and return the mounted :class:`Volume`
-        (keeping at most ``fat_cache_sectors`` FAT sectors in memory). Raises
-        :class:`FatError` naming the problem when the card is not a sane FAT32."""
+        (keeping at most ``fat_cache_sectors`` FAT sectors in memory). A dirty volume is
+        repaired (:meth:`repair`) unless ``repair`` is false. Raises :class:`FatError`
+        naming the problem when the card is not a sane FAT32."""
         mbr = await device.read_block(0)
         index, kind, start, sectors = _find_partition(mbr)
         where = f"partition {index + 1} (sector {start})"
@@ -519,6 +529,8 @@ class Volume:
         await volume._check_backup_boot(boot)
         await volume._read_fsinfo()
         await volume._check_fat_head()
+        if volume.was_dirty and repair:
+            await volume.repair()
         return volume
 
     async def _check_backup_boot(self, boot):
@@ -570,6 +582,191 @@ class Volume:
             if await self._fat_entry(cluster) == arch.FAT_FREE:
                 free += 1
         return free
+
+    # -- repair of a dirty volume -----------------------------------------------------------
+
+    async def repair(self):
+        """Repair what a power cut can leave on a dirty volume, as ``fsck.fat -a`` would, or
+        find damage it does not repair and leave the volume dirty (:attr:`damage`).
+
+        1. Walk every directory from the root (volume label, deleted and long-name entries
+           skipped) and follow every chain, marking each cluster reached in a bitmap. A
+           file's chain longer than its size is trimmed to it (its clusters past the size
+           are not marked); a size-0 file with a first cluster loses it. Damage a cut does
+           not cause (a chain shorter than its size or running into a free, bad or
+           out-of-range cluster, two chains meeting, a directory loop) is recorded in
+           :attr:`damage` and nothing is written.
+        2. Write the directory entries that lose their first cluster, then the FAT sectors
+           that end the trimmed chains (every FAT).
+        3. Sweep the FAT once, sector by sector: an allocated cluster no chain reached (a
+           lost cluster, a trimmed tail) is freed; FAT 1's sector is written when it changed,
+           then every other FAT's when it differs from FAT 1 (FAT 1 is written first by the
+           writer, so it is the newer); the free clusters are counted.
+        4. FSInfo gets the count (and the first free cluster as its hint), then the
+           clean-shutdown bit is set.
+
+        Every step leaves at worst lost clusters, FATs that differ or a stale count, with
+        the volume still dirty, so a cut during the repair is repaired at the next mount.
+
+        Bounds: memory, a bitmap of one bit per cluster (128 KiB for the 1 M clusters of a
+        32 GB card) and the FAT cache; block reads, every directory sector once, every FAT
+        sector of every FAT once in the sweep, and while following chains one FAT sector
+        read each time a chain moves to a FAT sector not in the cache (a contiguous chain
+        reads each of its FAT sectors once; at most one read per allocated cluster); block
+        writes, the entries and trimmed chains' sectors twice (every FAT), at most every FAT
+        sector once per FAT, FSInfo and the FAT's first sector. So the time is linear in the
+        size of the FAT and the directories: no chain is followed twice."""
+        layout = self.layout
+        free_was = self.free_count
+        reached = bytearray((layout.max_cluster >> 3) + 1)
+        damage, trims, unlink = [], [], []
+
+        def seen(cluster):
+            return reached[cluster >> 3] >> (cluster & 7) & 1
+
+        def mark(cluster):
+            reached[cluster >> 3] |= 1 << (cluster & 7)
+
+        def valid(cluster):
+            return arch.FIRST_DATA_CLUSTER <= cluster <= layout.max_cluster
+
+        async def follow(first, need, what):
+            """Mark ``first``'s chain (``need`` clusters; None: a directory, all of it);
+            return its clusters, or None after recording damage."""
+            chain, cluster = [], first
+            while True:
+                if need is not None and len(chain) == need:
+                    trims.append(chain[-1])         # the clusters from `cluster` on: lost
+                    return chain
+                if seen(cluster):
+                    damage.append(f"{what}: its chain meets another (cluster {cluster})")
+                    return None
+                mark(cluster)
+                chain.append(cluster)
+                following = await self._fat_entry(cluster)
+                if following >= arch.FAT_EOC_MIN:
+                    if need is not None and len(chain) < need:
+                        damage.append(f"{what}: {len(chain)} clusters, fewer than its size "
+                                      f"needs ({need})")
+                        return None
+                    return chain
+                if not valid(following):
+                    damage.append(f"{what}: its chain breaks at cluster {cluster} (FAT entry "
+                                  f"0x{following:08x})")
+                    return None
+                cluster = following
+
+        directories = [(layout.root_cluster, "the root directory")]
+        while directories and not damage:
+            first, where = directories.pop()
+            chain = await follow(first, None, where)
+            if chain is None:
+                break
+            async for lba, index, entry in self._slots_of(chain):
+                if entry[0] == arch.DIR_END:
+                    break
+                attr = entry[arch.DIR_ATTR]
+                if (entry[0] == arch.DIR_DELETED or attr & arch.Attr.LONG_NAME
+                        == arch.Attr.LONG_NAME or attr & arch.Attr.VOLUME_ID
+                        or entry[:2] == b". " or entry[:3] == b".. "):
+                    continue
+                base, ext = (entry[:8].decode("latin-1").rstrip(),
+                             entry[8:arch.DIR_NAME_BYTES].decode("latin-1").rstrip())
+                name = f"{base}.{ext}" if ext else base
+                what = f"{where}/{name}" if where != "the root directory" else f"/{name}"
+                start = (_u16(entry, arch.DIR_FST_CLUS_HI) << 16
+                         | _u16(entry, arch.DIR_FST_CLUS_LO))
+                size = _u32(entry, arch.DIR_FILE_SIZE)
+                if attr & arch.Attr.DIRECTORY:
+                    if not valid(start):
+                        damage.append(f"{what}: a directory starting at cluster {start}")
+                    else:
+                        directories.append((start, what))
+                    continue
+                if start == 0:
+                    if size:
+                        damage.append(f"{what}: {size} bytes but no cluster")
+                    continue
+                if not valid(start):
+                    damage.append(f"{what}: starts at cluster {start}, outside 2.."
+                                  f"{layout.max_cluster}")
+                    continue
+                if size == 0:
+                    unlink.append((lba, index))     # its clusters are lost clusters
+                    continue
+                await follow(start, _ceil_div(size, layout.cluster_bytes), what)
+        if damage:
+            self.damage = damage
+            self.notes.append(f"the dirty volume was not repaired: {damage[0]}"
+                              + (f" (and {len(damage) - 1} more)" if len(damage) > 1 else "")
+                              + "; it stays marked dirty")
+            return
+        for lba, index in unlink:
+            sector = bytearray(await self.device.read_block(lba))
+            offset = index * arch.DIR_ENTRY_BYTES
+            _put16(sector, offset + arch.DIR_FST_CLUS_HI, 0)
+            _put16(sector, offset + arch.DIR_FST_CLUS_LO, 0)
+            await self.device.write_block(lba, bytes(sector))
+        for cluster in trims:
+            await self._set_fat_entry(cluster, arch.FAT_EOC)
+        await self._flush_fat()
+        freed, copied, free, hint = await self._sweep(seen)
+        self.free_count = free
+        self.next_free = hint if hint is not None else arch.FIRST_DATA_CLUSTER
+        await self._write_fsinfo()
+        await self._set_clean_bit(True)
+        self.repaired = {"trimmed": len(trims), "freed": freed, "fat_copied": copied,
+                         "unlinked": len(unlink), "free_was": free_was, "free_count": free}
+        self.notes.append(f"the dirty volume was repaired: {len(trims)} chains trimmed to "
+                          f"their files' sizes, {freed} lost clusters freed, {copied} FAT "
+                          f"sectors made equal to FAT 1, free count {free} (was {free_was})")
+
+    async def _slots_of(self, chain):
+        """``(lba, index, entry)`` of each directory slot in the clusters ``chain``."""
+        for cluster in chain:
+            lba = self.layout.cluster_lba(cluster)
+            for sector in range(self.layout.sectors_per_cluster):
+                data = await self.device.read_block(lba + sector)
+                for index in range(arch.DIR_ENTRIES_PER_SECTOR):
+                    offset = index * arch.DIR_ENTRY_BYTES
+                    yield lba + sector, index, data[offset:offset + arch.DIR_ENTRY_BYTES]
+
+    async def _sweep(self, reached):
+        """Free every allocated cluster for which ``reached(cluster)`` is false and make
+        every FAT equal to FAT 1, a FAT sector at a time (FAT 1's first); returns ``(freed,
+        FAT sectors copied, free clusters, first free cluster or None)``."""
+        layout = self.layout
+        last_sector = layout.max_cluster // arch.FAT_ENTRIES_PER_SECTOR
+        freed = copied = free = 0
+        hint = None
+        for index in range(last_sector + 1):
+            sector = bytearray(await self.device.read_block(layout.fat_start + index))
+            changed = False
+            for slot in range(arch.FAT_ENTRIES_PER_SECTOR):
+                cluster = index * arch.FAT_ENTRIES_PER_SECTOR + slot
+                if not arch.FIRST_DATA_CLUSTER <= cluster <= layout.max_cluster:
+                    continue
+                offset = slot * arch.FAT_ENTRY_BYTES
+                value = _u32(sector, offset) & arch.FAT_ENTRY_MASK
+                if value != arch.FAT_FREE and value != arch.FAT_BAD and not reached(cluster):
+                    _put32(sector, offset, _u32(sector, offset) & ~arch.FAT_ENTRY_MASK
+                           & 0xFFFFFFFF)
+                    value, changed = arch.FAT_FREE, True
+                    freed += 1
+                if value == arch.FAT_FREE:
+                    free += 1
+                    if hint is None:
+                        hint = cluster
+            if changed:
+                await self.device.write_block(layout.fat_start + index, bytes(sector))
+            for fat in range(1, layout.num_fats):
+                lba = layout.fat_start + fat * layout.fat_sectors + index
+                if await self.device.read_block(lba) != sector:
+                    await self.device.write_block(lba, bytes(sector))
+                    copied += 1
+            if index in self._fat:
+                self._fat[index] = sector
+        return freed, copied, free, hint
 
     # -- the FAT ----------------------------------------------------------------------------
 
@@ -632,6 +829,8 @@ class Volume:
         self._trim_fat_cache()
 
     async def _set_clean_bit(self, clean):
+        if clean and self.damage:
+            return                      # damage the repair left: the volume stays dirty
         fat1 = await self._fat_entry(1)
         value = fat1 | arch.CLEAN_SHUTDOWN_BIT if clean else fat1 & ~arch.CLEAN_SHUTDOWN_BIT
         await self._set_fat_entry(1, value)

@@ -267,7 +267,9 @@ def test_a_card_inserted_later_is_mounted(tmp_path, fat_tools):
 
 
 def test_card_removed_and_reinserted_mid_recording(tmp_path, fat_tools):
-    scenario = long_scenario(until=3.0, presses=(0.3, 2.8), stop=2.75)
+    # The card mounts again about a second after its return (a retry a second) and its
+    # repair (the volume is dirty) reads both FATs: about 0.9 s on this card.
+    scenario = long_scenario(until=4.0, presses=(0.3, 3.8), stop=3.75)
     model = model_of(scenario, blank_card(tmp_path))
     model.remove_card(1.0, reinsert=1.3)
     start, apps = firmware(model)

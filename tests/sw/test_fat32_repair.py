@@ -8,6 +8,7 @@ import os
 import pytest
 
 from maglog.calib.card import read_logs
+from maglog.hw.arch import fat32 as arch
 from maglog.sw.fat32 import ImageFile, Volume, format_image
 
 from .test_fat32 import (MiB, T0, T1, _RECOVERABLE, copy_range_sparse, dma_flush,
@@ -116,3 +117,97 @@ def test_a_power_cut_while_a_file_shrinks_is_recoverable(tmp_path, fat_tools):
         findings = fsck_findings(fat_tools["fsck.fat"], image, tmp_path)
         assert [line for line in findings if not _RECOVERABLE.match(line)] == [], cut
         assert dict(read_logs(image))[name] in (stream, stream[:end]), cut
+
+
+# -- Repair of a dirty volume at mount --------------------------------------------------------
+
+def clean_bit(image, fat=0):
+    from .test_fat32 import fat_entries
+    return fat_entries(image, 1, fat=fat)[0] & arch.CLEAN_SHUTDOWN_BIT
+
+
+def test_every_cut_during_a_sync_is_repaired_at_the_next_mount(tmp_path, fat_tools):
+    # A sync whose chain crosses FAT sectors, cut after each of its blocks: the next mount
+    # repairs what the cut left (chain longer than the file, lost clusters, FATs that
+    # differ, a stale free count) and marks the volume clean; fsck then finds nothing and
+    # the file holds what was synced.
+    image, base = tmp_path / "card.img", tmp_path / "base.img"
+    format_image(image, 40 * MiB, cluster_bytes=512)
+    old = payload(700, 1)
+    new = old + payload(129 * 512, 2)
+
+    async def record(device):
+        volume = await Volume.mount(device)
+        side = await volume.create_log(T0)
+        await side.append(b"a closed file\r\n")
+        await side.close(T0)
+        log = await volume.create_log(T0)
+        await log.append(old)
+        await log.sync(T0)
+        await log.append(new[len(old):])
+        copy_range_sparse(image, 0, os.path.getsize(image), base)
+        device.journal = []
+        await log.sync(T1)
+        return log.name, device.journal
+
+    with Journal(image) as device:
+        name, journal = run(record(device))
+    kinds = set()
+    for cut in range(len(journal) + 1):
+        copy_range_sparse(base, 0, os.path.getsize(base), image)
+        for lba, data in journal[:cut]:
+            patch(image, lba * 512, data)
+        before = fsck_findings(fat_tools["fsck.fat"], image, tmp_path)
+        kinds.update(line for line in before if not line.startswith(" "))
+        synced = dict(read_logs(image))[name]
+        with ImageFile(image) as device:
+            volume = run(Volume.mount(device))
+        assert volume.was_dirty and volume.damage == [] and volume.repaired, cut
+        assert fsck_findings(fat_tools["fsck.fat"], image, tmp_path) == [], cut
+        assert clean_bit(image) and clean_bit(image, fat=1)
+        logs = dict(read_logs(image))
+        assert logs[name] == synced and synced in (old, new), cut
+        assert logs["LOG00001.TXT"] == b"a closed file\r\n"
+    # The cuts left each kind of damage the repair is for.
+    assert {"FATs differ but appear to be intact.", "Free cluster summary wrong"} <= {
+        line.split(" (")[0] for line in kinds}, kinds
+    assert any(line.startswith("/LOG") for line in kinds), kinds
+    assert any(line.startswith("Reclaimed") for line in kinds), kinds
+
+
+def test_damage_a_cut_does_not_cause_keeps_the_volume_dirty(tmp_path, fat_tools):
+    # A file whose size needs more clusters than its chain has (the entry written before
+    # the FAT: never by this writer): the repair does not guess, writes nothing, and the
+    # volume is never marked clean, even after a recording and a close.
+    image = tmp_path / "card.img"
+    format_image(image, 40 * MiB, cluster_bytes=512)
+
+    async def work(volume):
+        log = await volume.create_log(T0)
+        await log.append(payload(3000))
+        await log.sync(T0)
+        # The size says 4 more clusters than the chain holds; the volume stays dirty.
+        log.size += 4 * 512
+        await log._write_metadata(T0)
+        return log.name
+
+    name = run(mounted(image, work))
+    assert not clean_bit(image)
+    snapshot = image.read_bytes()
+
+    with ImageFile(image) as device:
+        volume = run(Volume.mount(device))
+    assert volume.was_dirty and volume.repaired is None
+    assert volume.damage == ["/LOG00001.TXT: 6 clusters, fewer than its size needs (10)"]
+    assert any("not repaired" in note and "stays marked dirty" in note
+               for note in volume.notes)
+    assert image.read_bytes() == snapshot                    # nothing written
+
+    async def record(volume):
+        log = await volume.create_log(T1)
+        await log.append(b"$after\r\n")
+        await log.close(T1)
+        await volume.close()
+
+    run(mounted(image, record))
+    assert not clean_bit(image) and not clean_bit(image, fat=1)
