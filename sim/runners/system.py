@@ -18,6 +18,7 @@ Every backend runs the same firmware (:class:`~maglog.sw.app.LoggerApp`) and mus
 the same card image for the same scenario (tests/system).
 """
 
+import importlib.util
 import shutil
 import time
 from pathlib import Path
@@ -27,7 +28,7 @@ from ..stimulus.system import SystemScenario
 from .result import SystemResult
 
 
-__all__ = ["BACKENDS", "RTL_BACKENDS", "BackendUnavailable", "available", "fastest_rtl",
+__all__ = ["BACKENDS", "RTL_BACKENDS", "BackendUnavailable", "available",
            "run_system"]
 
 BACKENDS = ("model", "amaranth", "icarus", "verilator", "verilator-cocotb")
@@ -48,31 +49,24 @@ def _missing(backend):
     from ..backends.cocotb import verilator_bin_dir
     if backend in ("model", "amaranth"):
         return None
+    if backend in ("icarus", "verilator-cocotb") and importlib.util.find_spec("cocotb") is None:
+        return "cocotb is not installed (pip install 'maglog[sim]')"
     if backend == "icarus":
-        return None if shutil.which("iverilog") else "iverilog (Icarus Verilog) is not on PATH"
+        return None if shutil.which("iverilog") else ("iverilog (Icarus Verilog) is not on "
+                                                      "PATH (Debian/Ubuntu: apt-get install "
+                                                      "iverilog)")
     try:
         verilator_bin_dir()
     except RuntimeError as error:
         return str(error)
     if not (shutil.which("c++") or shutil.which("g++")):
-        return "no C++ compiler on PATH (install build-essential)"
+        return "no C++ compiler on PATH (Debian/Ubuntu: apt-get install build-essential)"
     return None
 
 
 def available():
     """``{backend: None or why it cannot run here}``."""
     return {backend: _missing(backend) for backend in BACKENDS}
-
-
-def fastest_rtl():
-    """The fastest RTL backend this machine can run; raises BackendUnavailable."""
-    reasons = []
-    for backend in RTL_BACKENDS:
-        why = _missing(backend)
-        if why is None:
-            return backend
-        reasons.append(f"{backend}: {why}")
-    raise BackendUnavailable("no RTL simulator: " + "; ".join(reasons))
 
 
 def estimate_seconds(scenario, backend):
