@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from ..sim.reference import COUNTER_NAMES, DEFAULT_MAX_FRAME, Kind, ReferenceFilter
 from ..sim.reference import reference_filter
 from ..sim.stimulus.config import CHANNEL_NAMES
-from ..sim.stimulus.system import FLIGHT_CHANNELS
+from ..sim.stimulus.system import FLIGHT_CHANNELS, UART_FRAME_BITS as UART_BITS
 
 
 __all__ = ["CHANNEL_NAMES", "CHANNEL_KINDS", "DEFAULT_BAUDS", "BAUD_RANGE", "HilError",
@@ -48,6 +48,14 @@ DEFAULT_BAUDS = {name: config.baud for name, config in zip(CHANNEL_NAMES, FLIGHT
 BAUD_RANGE = (50, 4_000_000)
 #: How long the record loop waits for input before it looks at the clock again.
 POLL_S = 0.02
+#: ``replay --speed``'s range: beyond 10,000x a scenario of hours passes in a second and the
+#: bursts go out back to back whatever their times (the lines' own rate is the limit).
+SPEED_RANGE = (1e-3, 1e4)
+#: A write may wait for the operating system's buffer (a few KiB) to drain onto the line:
+#: its timeout is this much plus twice the line time of the buffer and the burst together,
+#: so that only a port nobody reads (or one held by flow control) times out.
+WRITE_SLACK_S = 2.0
+OS_BUFFER_BYTES = 4096
 
 
 class HilError(Exception):
@@ -162,8 +170,29 @@ def replay(system, ports, *, speed=1.0, baud_faults=False, until=None, on_press=
                         interrupted=interrupted and not errors, started=start)
 
 
+def write_timeout(nbytes, baud):
+    """Seconds a write of ``nbytes`` at ``baud`` may take before the port counts as stuck."""
+    return WRITE_SLACK_S + 2 * (nbytes + OS_BUFFER_BYTES) * UART_BITS / baud
+
+
+def line_seconds(system, k):
+    """Seconds channel ``k``'s bytes take on its line at the nominal rate, back to back."""
+    return len(system.channel_bytes(k)) * UART_BITS / system.channels[k].baud
+
+
+def _write(port, data, timeout):
+    if port.write_timeout != timeout:       # pyserial reconfigures the port on a change
+        port.write_timeout = timeout
+    written = port.write(data)
+    if written is not None and written < len(data):
+        raise TimeoutError(f"the port took {written} of {len(data)} bytes")
+
+
 def _send_channel(system, k, port, result, start, speed, end, baud_faults, stop):
     nominal = system.channels[k].baud
+    longest = max((len(b.data) for b in system.channel_bursts(k)), default=0)
+    slowest = min([nominal] + [b.baud for b in system.channel_bursts(k) if b.baud])
+    timeout = write_timeout(longest, slowest)
     try:
         for burst in system.channel_bursts(k):
             if burst.start >= end:
@@ -182,17 +211,28 @@ def _send_channel(system, k, port, result, start, speed, end, baud_faults, stop)
             if own and baud_faults:
                 port.flush()
                 port.baudrate = round(burst.baud)
-                port.write(burst.data)
+                _write(port, burst.data, timeout)
                 port.flush()
                 port.baudrate = nominal
             else:
-                port.write(burst.data)
+                _write(port, burst.data, timeout)
             result.bursts += 1
             result.bytes += len(burst.data)
         port.flush()
     except Exception as error:          # a port that went away: said in the result
-        result.error = f"{result.name}: {error}"
+        if _timed_out(error):
+            result.error = (f"{result.name}: the port took no bytes for "
+                            f"{port.write_timeout:.1f} s (write timeout): nothing reads its "
+                            "other end, or flow control holds the line")
+        else:
+            result.error = f"{result.name}: {error or type(error).__name__}"
         stop.set()
+
+
+def _timed_out(error):
+    import queue
+    import serial
+    return isinstance(error, (serial.SerialTimeoutException, queue.Full, TimeoutError))
 
 
 # --- record ---------------------------------------------------------------------------------

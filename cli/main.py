@@ -456,8 +456,9 @@ def _cmd_simulate(args):
     if out.is_dir():
         raise CliError(f"{out}: is a folder; give the card image's file name")
     try:
-        stimulus = load(args.scenario)
-        result = simulate(stimulus, out, backend=_backend_choice(args),
+        backend = _backend_choice(args)
+        stimulus = load(args.scenario, max_seconds=args.max_seconds, backend=backend)
+        result = simulate(stimulus, out, backend=backend,
                           build_dir=args.build_dir or default_build_dir(),
                           progress=not args.quiet)
     except RunError as error:
@@ -481,7 +482,8 @@ def _cmd_run(args):
     try:
         summary = main_job(args.scenario, args.out, backend=_backend_choice(args),
                            build_dir=args.build_dir or default_build_dir(), seed=args.seed,
-                           quick_papers=args.quick_papers, progress=not args.quiet)
+                           quick_papers=args.quick_papers, progress=not args.quiet,
+                           max_seconds=args.max_seconds)
     except RunError as error:
         raise CliError(str(error)) from None
     print(summary.text)
@@ -585,6 +587,14 @@ def _cmd_replay(args):
         if name not in ports:
             _progress(f"{name}: no port given; its {len(system.channel_bytes(index[name])):,} "
                       f"bytes are not sent")
+    from .hil import line_seconds
+    for name in ports:
+        busy = line_seconds(system, index[name])
+        if busy > system.until / args.speed:
+            _progress(f"note: {name}'s bytes need {busy:.3g} s on its line at {bauds[name]} "
+                      f"baud, more than the {system.until / args.speed:.3g} s the replay lasts "
+                      f"at {args.speed:g}x: its bursts go out late, back to back (at most "
+                      f"--speed {system.until / busy:.3g} keeps their timing)")
     _progress(f"replaying {system.until:.1f} s of scenario at {args.speed:g}x: about "
               f"{_duration(system.until / args.speed)} ("
               + ", ".join(f"{n} {devices[n]} at {bauds[n]} baud" for n in ports) + ")")
@@ -676,6 +686,16 @@ def _add_logger_options(parser):
                         default=1024,
                         help="frame FIFO bytes per channel, a power of two up to "
                              f"{arch_frames.MAX_FIFO_DEPTH} (default: %(default)s)")
+
+
+def _add_max_seconds(parser):
+    """``--max-seconds`` of ``simulate`` and ``run`` (as ``demo --max-cycles``)."""
+    from ..sim.stimulus.config import MAX_SCENARIO_S
+    from .run import DEFAULT_MAX_SECONDS
+    parser.add_argument("--max-seconds", type=_float_in(0, MAX_SCENARIO_S, low_open=True),
+                        default=DEFAULT_MAX_SECONDS,
+                        help="refuse a scenario estimated to simulate more seconds of flight "
+                             f"(up to {MAX_SCENARIO_S:g}; default: %(default)g)")
 
 
 def _parser():
@@ -792,6 +812,7 @@ def _parser():
                           help="simulator builds, kept between runs (default: "
                                "$MAGLOG_BUILD_DIR or build/sim)")
     simulate.add_argument("--quiet", action="store_true", help="no progress line")
+    _add_max_seconds(simulate)
     simulate.set_defaults(func=_cmd_simulate)
 
     run = commands.add_parser(
@@ -811,6 +832,7 @@ def _parser():
     run.add_argument("--quick-papers", action="store_true",
                      help="small made-up scenarios for papers B and C (seconds, not minutes)")
     run.add_argument("--quiet", action="store_true", help="no progress line")
+    _add_max_seconds(run)
     run.set_defaults(func=_cmd_run)
 
     demo = commands.add_parser(
@@ -844,8 +866,9 @@ def _parser():
                             help="a channel's port (NAME: mag, gps, cesium; DEV: a device "
                                  "or a pyserial URL); without NAME= the next channel in "
                                  "that order; a channel without a port is not sent")
-    replay_cmd.add_argument("--speed", type=_float_in(1e-3, 1e6), default=1.0,
-                            help="time runs this many times faster (default: %(default)s)")
+    replay_cmd.add_argument("--speed", type=_float_in(1e-3, 1e4), default=1.0,
+                            help="time runs this many times faster, 0.001 to 10000 (default: "
+                                 "%(default)s)")
     replay_cmd.add_argument("--baud-faults", action="store_true",
                             help="send a burst the scenario runs off its channel's rate at "
                                  "that rate (the port switched for it) instead of the "

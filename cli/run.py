@@ -21,12 +21,18 @@ import warnings
 from pathlib import Path
 
 
-__all__ = ["simulate", "main_job", "DEFAULT_CARD_BYTES", "DEFAULT_CLUSTER_BYTES"]
+__all__ = ["simulate", "main_job", "load", "run_size", "DEFAULT_CARD_BYTES",
+           "DEFAULT_CLUSTER_BYTES", "DEFAULT_MAX_SECONDS"]
 
 #: The blank card each run starts from: 1 GiB, 4 KiB clusters (a sparse file; a few MB on
 #: disk), formatted with the scenario's seed as volume id (a reproducible image).
 DEFAULT_CARD_BYTES = 1 << 30
 DEFAULT_CLUSTER_BYTES = 4096
+#: Simulated seconds (power-up to the run's end) a run or simulation takes on by default
+#: before it refuses; ``--max-seconds`` raises it (up to the scenario limit, six hours).
+#: The built-in survey scenario is 800 s; an hour of flight is about 70 minutes on
+#: Verilator and days on Icarus.
+DEFAULT_MAX_SECONDS = 1200.0
 
 
 class RunError(Exception):
@@ -44,19 +50,47 @@ def _say(text):
     print(text, file=sys.stderr, flush=True)
 
 
-def load(path):
-    """The scenario at ``path`` (None: the built-in default), built; RunError if bad."""
-    from ..sim.stimulus.config import ScenarioError, load_scenario
+def _duration(seconds):
+    if seconds >= 3600:
+        return f"{seconds / 3600:.3g} h"
+    if seconds >= 60:
+        return f"{seconds / 60:.3g} min"
+    return f"{max(seconds, 1):.0f} s"
+
+
+def run_size(scenario, backend=None):
+    """A run's size before anything is built: (simulated seconds, simulated clock cycles,
+    wall-clock seconds on ``backend`` or None where no rate is known)."""
+    from ..sim.runners.system import CLOCKS_PER_SECOND
+    seconds = scenario.run_seconds()
+    cycles = seconds * scenario.clk_freq
+    rate = CLOCKS_PER_SECOND.get(backend)
+    return seconds, cycles, (cycles / rate if rate else None)
+
+
+def load(path, *, max_seconds=None, backend=None):
+    """The scenario at ``path`` (None: the built-in default), built; RunError if bad, or
+    (with ``max_seconds``) if its run is estimated to be longer than that."""
+    from ..sim.stimulus.config import MAX_SCENARIO_S, ScenarioError, load_scenario
     try:
         scenario = load_scenario(path)
     except ScenarioError as error:
         raise RunError(str(error)) from None
     except OSError as error:
         raise RunError(f"{path}: {error.strerror or error}") from None
+    seconds, cycles, wall = run_size(scenario, backend)
+    if max_seconds is not None and seconds > max_seconds:
+        on = f", ~{_duration(wall)} on {backend}" if wall else ""
+        raise RunError(f"{scenario.source}: this run needs about {seconds:,.0f} s of simulated "
+                       f"flight ({cycles:.3g} clock cycles{on}), more than --max-seconds "
+                       f"{max_seconds:g}; shorten the scenario or raise --max-seconds (up to "
+                       f"{MAX_SCENARIO_S:g})")
     try:
         return scenario.build()
     except ScenarioError as error:
         raise RunError(str(error)) from None
+    except ValueError as error:         # a combination of keys the flight cannot take
+        raise RunError(f"{scenario.source}: cannot build the scenario: {error}") from None
 
 
 def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD_BYTES,
@@ -110,7 +144,7 @@ def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD
 
 
 def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers=False,
-             progress=True):
+             progress=True, max_seconds=None):
     """The main job: scenario → logger RTL → card → calibration → summary and report.
     Returns the :class:`~maglog.cli.summary.Summary` (printed by the caller)."""
     from ..calib.card import CardError, read_logs
@@ -120,7 +154,7 @@ def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers
     out = Path(out_dir)
     started = time.perf_counter()
     _say("[1/4] building the scenario")
-    stimulus = load(scenario_path)
+    stimulus = load(scenario_path, max_seconds=max_seconds, backend=backend)
     _say(f"[2/4] the logger's RTL on {backend}")
     card = out / "card.img"
     result = simulate(stimulus, card, backend=backend, build_dir=build_dir,

@@ -434,3 +434,33 @@ def test_record_command_stops_on_ctrl_c_and_keeps_its_frames(tmp_path):
     assert "ended on Ctrl-C" in out
     row = next(line for line in out.splitlines() if line.startswith("mag")).split()
     assert row[3:5] == ["2", "1"]           # kept, checksum
+
+
+def test_a_replay_into_a_port_nobody_reads_ends_with_a_write_timeout(capsys, monkeypatch):
+    # loop:// holds 4 KiB; with nothing reading it the writes would wait for ever.
+    from maglog.cli import hil
+    monkeypatch.setattr(hil, "WRITE_SLACK_S", 0.3)
+    start = time.monotonic()
+    code = main(["replay", "short", "--port", "mag=loop://", "--speed", "1e4"])
+    captured = capsys.readouterr()
+    assert time.monotonic() - start < 30
+    err = captured.err.strip().splitlines()
+    assert code == 1 and err[-1].startswith("maglog: error: the replay stopped: mag: "), err
+    assert "write timeout" in err[-1] and "nothing reads its other end" in err[-1]
+    # The speed beyond what the line carries is said before the replay starts.
+    assert any(line.startswith("note: mag's bytes need") for line in err)
+
+
+def test_write_timeout_covers_the_buffer_draining_onto_the_line():
+    from maglog.cli.hil import OS_BUFFER_BYTES, write_timeout
+    assert write_timeout(100, 50) > (100 + OS_BUFFER_BYTES) * 10 / 50
+    assert write_timeout(100, 115200) < 3.0
+
+
+@pytest.mark.parametrize("speed", ["1e6", "1e5", "0", "-1", "nan", "inf"])
+def test_replay_speed_range(capsys, speed):
+    with pytest.raises(SystemExit) as exit_:
+        main(["replay", "short", "--port", "mag=loop://", f"--speed={speed}"])
+    code = exit_.value.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--speed" in err[0]

@@ -134,3 +134,36 @@ def test_main_job_on_verilator_matches_the_truth(tmp_path, capsys, external):
     assert status == 0, printed
     summary = json.loads((tmp_path / "run" / "report" / "summary.json").read_text())
     assert summary["ok"] is True
+
+
+def test_a_run_is_sized_before_it_starts_and_refused_above_max_seconds(tmp_path, capsys):
+    # An hour on the ground: estimated before anything is built, refused by default with
+    # the estimate on the backend; --max-seconds raises the limit.
+    scenario = tmp_path / "hour.toml"
+    scenario.write_text("[flight.ground]\nseconds = 3600.0\n")
+    for command in (["simulate", str(scenario), "-o", str(tmp_path / "card.img")],
+                    ["run", str(scenario), "-o", str(tmp_path / "run")]):
+        status = main(command + ["--backend", "verilator"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert status == 1 and sum(line.startswith("maglog:") for line in err) == 1, err
+        assert err[-1].startswith("maglog: error: hour.toml: this run needs about 3,")
+        assert "on verilator), more than --max-seconds 1200" in err[-1]
+        assert "raise --max-seconds" in err[-1]
+    assert not (tmp_path / "card.img").exists() and not (tmp_path / "truth.json").exists()
+    status = main(["simulate", "short", "-o", str(tmp_path / "card.img"), "--backend",
+                   "model", "--max-seconds", "10", "--quiet"])
+    assert status == 1 and "more than --max-seconds 10;" in capsys.readouterr().err
+    status = main(["simulate", "short", "-o", str(tmp_path / "card.img"), "--backend",
+                   "model", "--max-seconds", "30", "--quiet"])
+    assert status == 0, capsys.readouterr().err
+    assert (tmp_path / "card.img").is_file()
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "1e9", "x"])
+def test_max_seconds_is_checked(tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as exit_:
+        main(["simulate", "short", "-o", str(tmp_path / "card.img"), "--backend", "model",
+              f"--max-seconds={value}"])
+    status = exit_.value.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1 and "--max-seconds" in err[0]
