@@ -7,12 +7,16 @@ __all__ = ["register"]
 
 def _cmd_hdl_component(args):
     from .main import CliError, _os_message
+    from .hdl_build import _remove_empty, check_output_folder
     from ..hw.platform.component import write_component
     kwargs = {"channels": args.channels, "clk_freq": args.clk_freq,
               "max_frame": args.max_frame, "fifo_depth": args.fifo_depth}
+    folder, made = check_output_folder(args.output)     # before the elaboration
     try:
-        written = write_component(args.output, kwargs)
+        written = write_component(folder, kwargs)
     except (TypeError, ValueError) as error:
+        if made:
+            _remove_empty(folder)
         raise CliError(str(error)) from None
     except OSError as error:
         raise CliError(f"cannot write {_os_message(error)}") from None
