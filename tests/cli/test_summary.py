@@ -171,3 +171,33 @@ def test_default_scenario_log_scores_clean(tmp_path):
     assert RESIDUAL_RATIO[0] <= ratio <= RESIDUAL_RATIO[1]
     assert "=> ALL CHECKS PASS" in summary.text
     assert len(stim.truth["faults"]) >= 6 and "Faults injected" in summary.text
+
+
+@pytest.mark.parametrize("sigma", [np.inf, 1e4])
+def test_parameters_the_flight_does_not_determine_fail_and_say_so(flown, sigma):
+    # A flight that does not turn an axis against the field leaves its parameters with a
+    # huge (or infinite) 1 sigma: z rounds to 0 however far off they are. Such a parameter
+    # passes only by the absolute tolerance; otherwise the check fails and says why.
+    import dataclasses
+    _, _, image, truth, run, counters = flown
+    loose = dataclasses.replace(run, result=dataclasses.replace(
+        run.result, uncertainties=np.full(9, sigma)))
+    wrong = copy.deepcopy(truth)
+    wrong["errors"]["c"][0] += 700.0               # c1 off by 700 nT: z ~ 0 with this sigma
+    summary = summarize(wrong, counters, read_logs(image), loose)
+    check = summary.checks[-1]
+    assert check.name == "parameters" and check.status == "fail", check.line()
+    assert "not determined by this flight" in check.detail and "c1 off by" in check.detail
+    assert summary.failed == ["parameters"]
+    assert "not determined by this flight" in summary.text
+    strict(summary)
+    # The same loose sigma with a truth the fit recovered within the absolute tolerances:
+    # nothing to fail.
+    exact = copy.deepcopy(truth)
+    exact["errors"]["K"] = np.asarray(run.result.K).tolist()
+    exact["errors"]["c"] = (np.asarray(run.result.c) + 1.0).tolist()
+    assert summarize(exact, counters, read_logs(image), loose).ok
+    # A determined parameter (the fit's own sigma) 700 nT off still fails as not recovered.
+    summary = summarize(wrong, counters, read_logs(image), run)
+    assert "not recovered: c1" in summary.checks[-1].detail
+    assert "not determined" not in summary.checks[-1].detail
