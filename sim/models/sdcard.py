@@ -40,6 +40,13 @@ What the card does (PLSS chapter 4):
   reported as a host error. With ``cmd23=True`` it sets the block count of the next CMD25,
   answered by an R1 with APP_CMD clear (§4.3.9.1 item 4); that CMD25 ends by itself after
   so many blocks (no CMD12, which would be illegal in tran).
+* Cards outside the spec, as other SD card models behave (options, all off by default):
+  ``cmd13=False``, a card that never answers CMD13 (no response, nothing flagged); with
+  ``acmd23=False`` it answers neither ACMD23 nor CMD13. ``illegal_kept=False``: the
+  ILLEGAL_COMMAND flag is cleared when the next command arrives instead of being kept until
+  a response reports it (§4.10.1 clear condition B), so no response ever shows it.
+  ``ocr_ccs=True`` on a Ver1.X card (``version=1``, standard capacity): the OCR's CCS bit is
+  set although the card takes byte addresses (CCS is reserved for it, PLSS §5.1).
 * Transfer: CMD7 (select R1b / deselect), CMD9/CMD10 (R2 CSD/CID), CMD13 (R1), CMD16, CMD17
   and CMD18 (reads), CMD24 and CMD25 (writes, ended by CMD12), CMD12 (R1b), CMD15, ACMD6
   (bus width), ACMD13 (SD status), ACMD22 (well-written blocks), ACMD23 (pre-erase count),
@@ -252,12 +259,22 @@ class SdCard:
         Clocks the card leaves DAT0 released after a CRC status token's end bit (and after
         the end bit of CMD12's R1b) before it holds DAT0 low for busy; 0 = at once, as the
         PLSS timing diagrams draw it.
+    cmd13 : bool
+        False: the card never answers CMD13 (SEND_STATUS) and flags nothing for it.
+    illegal_kept : bool
+        False: ILLEGAL_COMMAND is cleared when the next command arrives, before its
+        response, instead of being kept until reported: no response shows it.
+    ocr_ccs : bool or None
+        The CCS bit of the OCR once the card is ready; None: as ``high_capacity``. True on a
+        standard-capacity card gives a card that claims block addressing in its OCR but
+        takes byte addresses.
     """
 
     def __init__(self, image: CardImage, *, seed=0, capacity_blocks=None, busy_clocks=(8, 64),
                  faults: Faults | None = None, rca=None, n_cr=arch.N_CR_MIN, n_ac=None,
                  acmd41_busy=(1, 4), high_capacity=True, version=2, acmd23=True,
-                 cmd23=False, busy_start_delay=0):
+                 cmd23=False, busy_start_delay=0, cmd13=True, illegal_kept=True,
+                 ocr_ccs=None):
         if not isinstance(image, CardImage):
             raise TypeError(f"Image must be a CardImage, not {image!r}")
         if capacity_blocks is None:
@@ -286,6 +303,11 @@ class SdCard:
                 or busy_start_delay < 0):
             raise ValueError(f"Busy start delay must be a non-negative number of clocks, not "
                              f"{busy_start_delay!r}")
+        for name, value in (("CMD13", cmd13), ("Illegal kept", illegal_kept)):
+            if not isinstance(value, bool):
+                raise ValueError(f"{name} must be True or False, not {value!r}")
+        if ocr_ccs is not None and not isinstance(ocr_ccs, bool):
+            raise ValueError(f"OCR CCS must be True, False or None, not {ocr_ccs!r}")
         if faults is None:
             faults = Faults()
         if not isinstance(faults, Faults):
@@ -297,6 +319,9 @@ class SdCard:
         self.acmd23 = bool(acmd23)
         self.cmd23 = bool(cmd23)
         self.busy_start_delay = busy_start_delay
+        self.cmd13 = cmd13
+        self.illegal_kept = illegal_kept
+        self.ocr_ccs = self.high_capacity if ocr_ccs is None else ocr_ccs
         if not self.high_capacity:
             self._csd_v1 = _csd_v1_fields(capacity_blocks)
             capacity_blocks = self._csd_v1["blocks"]
@@ -487,6 +512,8 @@ class SdCard:
             self._error(now, f"{name}: end bit is 0")
             return ignore("end bit 0")
 
+        if not self.illegal_kept:
+            self._pending &= ~CardStatus.ILLEGAL_COMMAND    # cleared, never reported
         state_before = self.state
         delay = arch.N_ID if (index == Command.ALL_SEND_CID or
                               (is_acmd and index == AppCommand.SD_SEND_OP_COND)) \
@@ -628,6 +655,8 @@ class SdCard:
             return _Reply(Response.R1B)
 
         if index == Command.SEND_STATUS:
+            if not self.cmd13:
+                return _Reply(Response.NONE, note="this card does not answer CMD13")
             self._require(*_ADDRESSED_STATES)
             self._check_rca(argument)
             return _Reply(Response.R1)
@@ -810,7 +839,7 @@ class SdCard:
                     note = "ready"
         ocr = arch.OCR_VOLTAGE_WINDOW
         if self.ocr_ready:
-            ocr |= arch.OCR_POWER_UP_DONE | (arch.OCR_CCS if self.high_capacity else 0)
+            ocr |= arch.OCR_POWER_UP_DONE | (arch.OCR_CCS if self.ocr_ccs else 0)
         return _Reply(Response.R3, ocr, note)
 
     # -- registers -----------------------------------------------------------------------------

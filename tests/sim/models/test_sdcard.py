@@ -359,6 +359,8 @@ def test_configurable_n_cr_and_seeded_determinism():
     (dict(version=1), "version 1 card is standard capacity"), (dict(version=3), "Version"),
     (dict(busy_start_delay=-1), "Busy start delay"),
     (dict(busy_start_delay=True), "Busy start delay"),
+    (dict(cmd13=0), "CMD13"), (dict(illegal_kept="yes"), "Illegal kept"),
+    (dict(ocr_ccs=1), "OCR CCS"),
 ])
 def test_bad_parameters(kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -879,3 +881,48 @@ def test_busy_start_delay(delay):
     host.cmd(12, then=0)
     assert host.wait_busy(grace=delay + 2) == 12 and host.busy_start == delay
     assert image.read_block(61) == random_block(1) and card.errors == []
+
+
+# -- card models of other projects, as options: no CMD13, ILLEGAL_COMMAND not kept, v1 with CCS --
+
+def test_card_without_cmd13_nor_acmd23():
+    card, host, image = ready_card(acmd23=False, cmd13=False)
+    assert host.cmd(13, card.rca << 16) is None
+    assert host.acmd(23, 4) is None
+    assert host.cmd(13, card.rca << 16) is None
+    # Nothing answers CMD13, and it flags nothing: the ILLEGAL_COMMAND of the ACMD23 (taken
+    # as CMD23) is what the next response carries.
+    assert host.cmd(55, card.rca << 16).has(CardStatus.ILLEGAL_COMMAND)
+    assert not host.cmd(55, card.rca << 16).has(CardStatus.ILLEGAL_COMMAND)
+    host.cmd(24, 9, then=0)
+    assert host.write_block(random_block(9))[0] == arch.TOKEN_ACCEPTED
+    assert image.read_block(9) == random_block(9)
+    notes = [t.note for t in card.log if isinstance(t, Transaction) and t.command == "CMD13"]
+    assert notes == ["this card does not answer CMD13"] * 2
+    assert card.errors == []
+
+
+@pytest.mark.parametrize("kept", [True, False])
+def test_illegal_command_kept_or_cleared_by_the_next_command(kept):
+    card, host, _ = ready_card(illegal_kept=kept)
+    assert host.cmd(2) is None                                  # CMD2 in tran: illegal
+    status = host.cmd(13, card.rca << 16)
+    assert status.has(CardStatus.ILLEGAL_COMMAND) is kept
+    assert not host.cmd(13, card.rca << 16).has(CardStatus.ILLEGAL_COMMAND)
+    # A command lost to a CRC error is still reported, either way.
+    assert host.cmd(13, card.rca << 16, bad_crc=True) is None
+    assert host.cmd(13, card.rca << 16).has(CardStatus.COM_CRC_ERROR)
+
+
+def test_version_1_card_with_ccs_takes_byte_addresses():
+    card, host, image = make_card(high_capacity=False, version=1, ocr_ccs=True)
+    replies = initialise(host)
+    assert replies["CMD8"] is None
+    assert replies["ACMD41"][-1].payload & arch.OCR_CCS         # claims block addressing
+    assert all(not r.payload & arch.OCR_CCS for r in replies["ACMD41"][:-1])
+    # ... yet takes byte addresses: block 3 is at byte 1536; "3" is misaligned.
+    assert host.cmd(24, 3).has(CardStatus.ADDRESS_ERROR)
+    host.cmd(24, 3 * arch.BLOCK_BYTES, then=0)
+    assert host.write_block(random_block(3))[0] == arch.TOKEN_ACCEPTED
+    assert image.read_block(3) == random_block(3)
+    assert card.errors == []
