@@ -44,6 +44,10 @@ class _Parser(argparse.ArgumentParser):
     """argparse with one-line usage errors (the usage itself is under ``--help``)."""
 
     def error(self, message):
+        # A value given in the message (argparse's "invalid choice: '...'", our types'
+        # "not '...'") is cut short: a 10,000-character argument is not repeated whole.
+        import re
+        message = re.sub(r"'([^']{60})[^']+'", lambda m: f"'{m[1]}…'", message)
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
@@ -441,13 +445,18 @@ def _cmd_calibrate(args):
 
 
 def _backend_choice(args):
-    from ..sim.runners.system import BackendUnavailable, fastest_rtl
+    """The backend ``--backend`` names; for ``auto`` the Verilator harness, the only RTL
+    backend that runs a whole flight in minutes (the per-pin simulators take hours: an
+    explicit choice, not a fallback)."""
+    from ..sim.runners.system import available
     if args.backend != "auto":
         return args.backend
-    try:
-        return fastest_rtl()
-    except BackendUnavailable as error:
-        raise CliError(str(error)) from None
+    why = available()["verilator"]
+    if why is not None:
+        raise CliError(f"the RTL backend (verilator) cannot run here: {why}; or choose "
+                       f"--backend model (no RTL, seconds), or --backend icarus or amaranth "
+                       f"(hours for a whole flight)")
+    return "verilator"
 
 
 def _cmd_simulate(args):
@@ -688,6 +697,16 @@ def _add_logger_options(parser):
                              f"{arch_frames.MAX_FIFO_DEPTH} (default: %(default)s)")
 
 
+def _version():
+    """The installed distribution's version (pyproject.toml), or "unknown" when maglog runs
+    from a source tree that was never installed."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("maglog")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def _add_max_seconds(parser):
     """``--max-seconds`` of ``simulate`` and ``run`` (as ``demo --max-cycles``)."""
     from ..sim.stimulus.config import MAX_SCENARIO_S
@@ -704,6 +723,7 @@ def _parser():
     parser = _Parser(
         prog="maglog", description="UAV geomagnetic survey logger: gateware, simulation, "
                                    "calibration.")
+    parser.add_argument("--version", action="version", version=f"maglog {_version()}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     hdl = commands.add_parser("hdl", help="generate hardware description")
@@ -796,8 +816,8 @@ def _parser():
 
     from ..sim.runners.system import BACKENDS as SYSTEM_BACKENDS
     backend_help = ("model (transaction level), amaranth, icarus, verilator (the fast C++ "
-                    "harness), verilator-cocotb, or auto: the fastest RTL simulator here "
-                    "(default: %(default)s)")
+                    "harness), verilator-cocotb, or auto: verilator, or an error naming what "
+                    "to install when it cannot run here (default: %(default)s)")
     simulate = commands.add_parser(
         "simulate", help="run a flight scenario through the whole logger to a card image")
     simulate.add_argument("scenario", nargs="?", default=None,
