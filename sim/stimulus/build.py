@@ -40,7 +40,7 @@ from . import sentences
 from .captures import load_capture, shared_data_dir
 from .system import UART_FRAME_BITS, SystemScenario, Timeline
 from . import errors as _errors
-from .config import CHANNEL_NAMES
+from .config import CHANNEL_NAMES, shorten
 from .flight import make_flight, survey_seconds
 
 __all__ = ["Stimulus", "Item", "build", "NOISE_BYTES", "KEEPABLE"]
@@ -117,18 +117,23 @@ def _capture_bytes(scenario, name):
     if text.startswith("shared:"):
         data = shared_data_dir()
         if data is None:
-            raise scenario.error(where, f"needs the shared data folder, absent ({text!r})")
+            raise scenario.error(where, "needs the shared data folder, absent "
+                                        f"({shorten(repr(text))})")
         path = data / text.removeprefix("shared:")
     else:
         path = Path(text)
         if not path.is_absolute() and scenario.folder is not None:
             path = scenario.folder / path
-    if not path.is_file():
-        raise scenario.error(where, f"must name a readable file, not {text!r}")
-    data = load_capture(path)
+    try:
+        if not path.is_file():
+            raise scenario.error(where, f"must name a readable file, not {shorten(repr(text))}")
+        data = load_capture(path)
+    except OSError as error:             # a name too long, a file that cannot be read
+        raise scenario.error(where, f"must name a readable file, not {shorten(repr(text))} "
+                                    f"({error.strerror or type(error).__name__})") from None
     lines = [line for line in data.splitlines(keepends=True) if line]
     if not lines:
-        raise scenario.error(where, f"holds no data after its header ({text!r})")
+        raise scenario.error(where, f"holds no data after its header ({shorten(repr(text))})")
     return lines
 
 
