@@ -55,6 +55,19 @@ _KIND = {
 
 CMD_RETRIES = 3
 WRITE_RETRIES = 2
+
+# Margins over the PLSS's timing minimums (§4.12.4, §6.4.1.1). The spec bounds these gaps
+# from below only (or, for N_CR, bounds the card's side from above), so a host may give
+# more; cards and card emulators that are slow to turn the line round then still work.
+#: Clocks before the first command (PLSS §6.4.1.1: at least 74): twice the minimum.
+INIT_CLOCKS_SENT = 2 * arch.INIT_CLOCKS
+#: Clocks the driver adds between commands on top of the host's own N_CC gap (the CMD
+#: engine stays busy exactly N_CC = N_RC = 8 clocks, the minimum, after a response or a
+#: command without one): at least 16 clocks from one command or response to the next.
+COMMAND_GAP_EXTRA_CLOCKS = arch.N_CC
+#: How long the host waits for a response's start bit (its ``timeouts.response`` setting,
+#: N_CR_MAX = 64 clocks at reset): twice the latest a card may answer.
+RESPONSE_TIMEOUT_CLOCKS = 2 * arch.N_CR_MAX
 #: After a failed write the card may still program (prg) the block whose busy outlasted the
 #: host's timeout; it is polled with CMD13 (legal in prg) until it is back in tran for this
 #: long, twice the write timeout of PLSS §4.6.2.2 (250 ms), before the write is given up.
@@ -77,12 +90,17 @@ class CardInfo:
     ``high_capacity`` is the OCR's CCS bit: True for SDHC/SDXC (block addresses), False for
     a standard-capacity card (SDSC, byte addresses; the driver converts). ``version`` is 2
     when the card answered CMD8 (physical layer 2.00 or later), 1 for a Ver1.X card.
+    ``ccs_ignored`` is True when a card that did not answer CMD8 still set CCS in its OCR:
+    CCS means something only after CMD8 and an ACMD41 with HCS (PLSS §4.2.3.1, Figure 4-2;
+    a Ver1.X card is standard capacity), so the driver uses byte addresses for it
+    (``high_capacity`` False) and says so here.
     """
     ocr: int
     cid: int
     rca: int
     high_capacity: bool
     version: int = 2
+    ccs_ignored: bool = False
 
 
 class SdCardDriver:
@@ -104,10 +122,25 @@ class SdCardDriver:
         self.sd_clock_hz = None
         self.info = None
         self.retries = 0                    # how many retries were needed so far
+        self._forget_card()
+        self._divisor = None                # the SD clock's divisor, once set
+        self._gap_owed = False              # a command went out since the last extra gap
+
+    def _forget_card(self):
+        """What the driver learnt about the card, back to unknown (at each initialise)."""
         #: Whether the card takes ACMD23 (the pre-erase count before a CMD25): None until a
-        #: multi-block write has tried it, False once the card refused it (it answered
-        #: nothing and flagged ILLEGAL_COMMAND); multi-block writes then go without it.
+        #: multi-block write has tried it, True once it answered as ACMD23, False once it
+        #: did not (no answer, or taken as CMD23); multi-block writes then go without it
+        #: until the card is initialised again. :attr:`pre_erase_note` says why.
         self.pre_erase_supported = None
+        self.pre_erase_note = ""
+        #: Whether the card answers CMD13 (SEND_STATUS): None until asked, False once it
+        #: did not when it was asked first; the driver then waits on DAT0 instead after a
+        #: failed write (see :meth:`_wait_tran`). :attr:`status_note` says why.
+        self.status_supported = None
+        self.status_note = ""
+        #: Each decision above that leaves the spec's usual path, once, in plain words.
+        self.fallbacks = []
 
     # -- host primitives --------------------------------------------------------------------
 
@@ -120,6 +153,7 @@ class SdCardDriver:
                              f"({self.sys_clock_hz / (2 * (limit + 1)):.0f} Hz)")
         await self.bus.write(self.regs["clock"].address,
                              self.regs["clock"].encode(divisor=divisor, run=int(run)))
+        self._divisor = divisor
         self.sd_clock_hz = self.sys_clock_hz / (2 * (divisor + 1))
         return self.sd_clock_hz
 
@@ -139,31 +173,53 @@ class SdCardDriver:
             raise SdTimeout(f"the SD host stayed busy: {error}") from None
         return status.decode(word)
 
-    async def command(self, index, argument, response, *, data=DataPhase.NONE):
+    async def _keep_command_gap(self):
+        """COMMAND_GAP_EXTRA_CLOCKS more clocks after the last command's N_CC gap (which the
+        CMD engine has kept by the time it is idle). The host runs the SD clock only while
+        it is busy, so idle time alone gives the card no clocks: the clock runs for them."""
+        if not self._gap_owed:
+            return
+        self._gap_owed = False
+        clock = self.regs["clock"]
+        await self.bus.write(clock.address, clock.encode(divisor=self._divisor, run=1))
+        await self.bus.wait(self._clocks_to_s(COMMAND_GAP_EXTRA_CLOCKS))
+        await self.bus.write(clock.address, clock.encode(divisor=self._divisor, run=0))
+
+    async def command(self, index, argument, response, *, data=DataPhase.NONE, tries=None,
+                      name=None):
         """Send one command; returns the response bits (card status, OCR, CID ...).
 
         Retries a command without a data phase on a response CRC error (a data command is
-        not sent twice: the card may already wait for data); raises :class:`SdTimeout` when
-        nothing answers, :class:`SdCrcError` when every try had a CRC error,
-        :class:`SdCardError` on a malformed response or error bits in an R1."""
+        not sent twice: the card may already wait for data), up to ``tries`` times in all
+        (default CMD_RETRIES); raises :class:`SdTimeout` when nothing answers,
+        :class:`SdCrcError` when every try had a CRC error, :class:`SdCardError` on a
+        malformed response or error bits in an R1. ``name`` names the command in those
+        (default ``CMD<index>``)."""
         regs = self.regs
-        tries = CMD_RETRIES if data == DataPhase.NONE else 1
+        name = name or f"CMD{index}"
+        if tries is None:
+            tries = CMD_RETRIES if data == DataPhase.NONE else 1
+        # The engine is busy for the command, the wait for the response, the longest
+        # response and its gap: twice that before the host is taken as stuck.
+        engine_clocks = (arch.CMD_BITS + RESPONSE_TIMEOUT_CLOCKS + arch.R2_BITS
+                         + arch.N_CC + COMMAND_GAP_EXTRA_CLOCKS)
         for attempt in range(tries):
+            await self._keep_command_gap()
             await self.bus.write(regs["argument"].address, argument)
             await self.bus.write(regs["command"].address, regs["command"].encode(
                 index=index, kind=_KIND[response],
                 r1b=int(response == arch.Response.R1B), data=data))
-            status = await self._wait_idle("cmd_busy", self._clocks_to_s(4 * arch.N_CR_MAX
-                                                                           + 2 * arch.R2_BITS))
+            status = await self._wait_idle("cmd_busy", self._clocks_to_s(2 * engine_clocks))
+            self._gap_owed = True
             if response == arch.Response.NONE:
                 return None
             if status["cmd.timeout"]:
-                raise SdTimeout(f"CMD{index} got no response")
+                raise SdTimeout(f"{name} got no response")
             if status["cmd.crc_error"]:
                 self.retries += 1
                 continue
             if status["cmd.format_error"] or status["cmd.end_error"]:
-                raise SdCardError(f"CMD{index}: malformed response ({_flags(status, 'cmd.')})")
+                raise SdCardError(f"{name}: malformed response ({_flags(status, 'cmd.')})")
             bits = 0
             words = 4 if response == arch.Response.R2 else 2
             for word in range(words):
@@ -175,11 +231,11 @@ class SdCardDriver:
             if response in (arch.Response.R1, arch.Response.R1B):
                 errors = arch.CardStatus(payload) & STATUS_ERRORS
                 if errors:
-                    raise SdCardError(f"CMD{index}: card status reports {errors!r}")
+                    raise SdCardError(f"{name}: card status reports {errors!r}")
             if response == arch.Response.R1B:
-                await self._wait_dat(f"CMD{index} busy")
+                await self._wait_dat(f"{name} busy")
             return payload
-        raise SdCrcError(f"CMD{index}: response CRC error on all {tries} tries")
+        raise SdCrcError(f"{name}: response CRC error on all {tries} tries")
 
     async def _wait_dat(self, what):
         timeout = self._clocks_to_s(arch.BUSY_TIMEOUT_CLOCKS) * 2
@@ -196,9 +252,18 @@ class SdCardDriver:
             pass                    # not in a data state any more: nothing to stop
 
     async def app_command(self, index, argument, response):
+        """CMD55 then ACMD ``index``. A response CRC error sends both again: the ACMD
+        alone would reach the card as the regular command of that index (CMD6 is
+        SWITCH_FUNC, CMD23 SET_BLOCK_COUNT), and CMD55 applies to the next command only."""
         rca = self.info.rca if self.info else 0
-        await self.command(arch.Command.APP_CMD, rca << 16, arch.Response.R1)
-        return await self.command(index, argument, response)
+        for attempt in range(CMD_RETRIES):
+            await self.command(arch.Command.APP_CMD, rca << 16, arch.Response.R1)
+            try:
+                return await self.command(index, argument, response, tries=1,
+                                          name=f"ACMD{index}")
+            except SdCrcError:
+                continue                    # counted in self.retries by command()
+        raise SdCrcError(f"ACMD{index}: response CRC error on all {CMD_RETRIES} tries")
 
     # -- identification ---------------------------------------------------------------------
 
@@ -209,13 +274,21 @@ class SdCardDriver:
         As PLSS §4.2.3.1 (Figure 4-2) has it: a card that answers CMD8 gets ACMD41 with HCS
         (it may be SDHC/SDXC or SDSC, the OCR's CCS says which); a card that does not is a
         Ver1.X card (or none) and gets ACMD41 with HCS = 0; no answer to that either means
-        no card. A standard-capacity card's block length is 512 bytes from power-up
-        (PLSS Table 4-22, CMD16), so no CMD16 is needed."""
+        no card. A Ver1.X card is standard capacity even if its OCR sets CCS (byte
+        addresses; :attr:`CardInfo.ccs_ignored` says so). A standard-capacity card's block
+        length is 512 bytes from power-up (PLSS Table 4-22, CMD16), so no CMD16 is needed.
+
+        Everything learnt about the previous card (:attr:`pre_erase_supported`,
+        :attr:`status_supported`, :attr:`fallbacks`) is forgotten first: this may be
+        another card."""
         self.info = None
-        self.pre_erase_supported = None
+        self._forget_card()
+        await self.bus.write(self.regs["timeouts"].address,
+                             self.regs["timeouts"].encode(response=RESPONSE_TIMEOUT_CLOCKS))
         await self.set_clock(arch.IDENT_CLOCK_HZ, run=True)
-        await self.bus.wait(self._clocks_to_s(arch.INIT_CLOCKS + 2))
+        await self.bus.wait(self._clocks_to_s(INIT_CLOCKS_SENT))
         await self.set_clock(arch.IDENT_CLOCK_HZ, run=False)
+        self._gap_owed = False              # those clocks were the gap
         await self.command(arch.Command.GO_IDLE_STATE, 0, arch.Response.NONE)
         try:
             echo = await self.command(arch.Command.SEND_IF_COND, arch.IF_COND_ARGUMENT,
@@ -245,8 +318,17 @@ class SdCardDriver:
             await self.bus.wait(1e-3)
         cid = await self.command(arch.Command.ALL_SEND_CID, 0, arch.Response.R2)
         rca = (await self.command(arch.Command.SEND_RELATIVE_ADDR, 0, arch.Response.R6)) >> 16
-        self.info = CardInfo(ocr=ocr, cid=cid, rca=rca,
-                             high_capacity=bool(ocr & arch.OCR_CCS), version=version)
+        # CCS is valid only on the version-2 path (a CMD8 answer, then HCS in ACMD41): a
+        # Ver1.X card is standard capacity whatever that bit says (PLSS §4.2.3.1). Believing
+        # it would send block numbers to a card that reads byte addresses: every block of
+        # the first 512 would land on block 0.
+        ccs = bool(ocr & arch.OCR_CCS)
+        ccs_ignored = ccs and version == 1
+        if ccs_ignored:
+            self.fallbacks.append("CCS set in the OCR of a card that did not answer CMD8 "
+                                  "(a Ver1.X card): ignored, byte addressing")
+        self.info = CardInfo(ocr=ocr, cid=cid, rca=rca, high_capacity=ccs and version == 2,
+                             version=version, ccs_ignored=ccs_ignored)
         await self.command(arch.Command.SELECT_CARD, rca << 16, arch.Response.R1B)
         await self.app_command(arch.AppCommand.SET_BUS_WIDTH, arch.BUS_WIDTH_4,
                                arch.Response.R1)
@@ -254,8 +336,25 @@ class SdCardDriver:
         return self.info
 
     async def card_status(self):
-        return await self.command(arch.Command.SEND_STATUS, self.info.rca << 16,
-                                  arch.Response.R1)
+        """The card status (CMD13's R1)."""
+        status = await self.command(arch.Command.SEND_STATUS, self.info.rca << 16,
+                                    arch.Response.R1)
+        self.status_supported = True
+        return status
+
+    def _no_status(self, why):
+        """Record, once, that this card does not answer CMD13."""
+        if self.status_supported is None:
+            self.status_supported = False
+            self.status_note = why
+            self.fallbacks.append(f"no card status: {why}; after a failed write the driver "
+                                  f"waits for DAT0 instead")
+
+    def _no_pre_erase(self, why):
+        """Record, once, that multi-block writes go without ACMD23 on this card."""
+        self.pre_erase_supported = False
+        self.pre_erase_note = why
+        self.fallbacks.append(f"no pre-erase: {why}; multi-block writes go without ACMD23")
 
     # -- data -------------------------------------------------------------------------------
 
@@ -303,10 +402,11 @@ class SdCardDriver:
         """Write ``count`` blocks from block ``lba`` on, their bytes streamed to the host by
         ``source`` (``await source.arm(first, n)`` sets it up to send blocks first ..
         first+n-1 of the run; ``await source.cancel()`` drops what it has not sent). CMD24
-        for one block, else ACMD23 (pre-erase count; skipped when ``pre_erase`` is false or
-        the card refused it before, see :attr:`pre_erase_supported`) and CMD25 ended by
-        CMD12. A block the card rejects is sent again (after CMD12 and a status check), up
-        to a limit; raises :class:`SdWriteError` with the count of blocks that are safely
+        for one block, else ACMD23 (pre-erase count, a hint: skipped when ``pre_erase`` is
+        false or the card did not take it before, see :attr:`pre_erase_supported`; never a
+        reason for the write to fail) and CMD25 ended by CMD12. A block the card rejects is
+        sent again (after CMD12 and a status check, see :meth:`_wait_tran`), up to a limit;
+        raises :class:`SdWriteError` with the count of blocks that are safely
         written. Returns ``count``."""
         done = 0
         failures = 0
@@ -334,10 +434,28 @@ class SdCardDriver:
         return done
 
     async def _wait_tran(self):
-        """Poll the card status (CMD13) until the card is back in tran, ready for data."""
+        """Poll the card status (CMD13) until the card is back in tran, ready for data.
+
+        A card that has never answered CMD13 and does not answer it now (some card models
+        answer no CMD13 at all) is not given up: that would cost the blocks still to write
+        although every block the card accepted (by its CRC status token) is written. The
+        driver then waits for DAT0 to be released instead (the card holds it low while it
+        programs, PLSS §4.3.4; the failed run has already had its CMD12 and that R1b's
+        busy): the card is back in tran, and if it is not, the next write command goes
+        unanswered and the write fails with the count of blocks accepted so far. A card
+        that answered CMD13 before and stops answering is in trouble: that ends the write.
+        """
+        if self.status_supported is False:
+            return await self._wait_dat0_released()
         start = self.bus.now()
         while True:
-            status = await self.card_status()
+            try:
+                status = await self.card_status()
+            except SdTimeout as error:
+                if self.status_supported is not None:
+                    raise
+                self._no_status(f"{error} after a failed write")
+                return await self._wait_dat0_released()
             state = (status & arch.STATUS_STATE_MASK) >> arch.STATUS_STATE_SHIFT
             if state == arch.CardState.TRAN and status & arch.CardStatus.READY_FOR_DATA:
                 return
@@ -347,33 +465,81 @@ class SdCardDriver:
                                 f"after a failed write")
             await self.bus.wait(RECOVER_POLL_S)
 
+    async def _wait_dat0_released(self):
+        """Wait until the card releases DAT0 (no more busy), RECOVER_LIMIT_S at most."""
+        status = self.regs["status"]
+        level = status.field("dat_level")
+        try:
+            await self.bus.wait_event(status.address, lambda w: level.extract(w) & 1,
+                                      timeout=RECOVER_LIMIT_S, poll=RECOVER_POLL_S,
+                                      what="DAT0 high")
+        except BusTimeout:
+            raise SdTimeout(f"the card held DAT0 low (busy) for {RECOVER_LIMIT_S:g} s after "
+                            f"a failed write") from None
+
     async def _pre_erase(self, count):
-        """ACMD23 before a CMD25 of ``count`` blocks, unless the card refused it before;
-        returns True when the card took it for CMD23 (SET_BLOCK_COUNT): that CMD25 then ends
-        by itself and gets no CMD12.
+        """ACMD23 before a CMD25 of ``count`` blocks, unless this card has shown it does not
+        take it; returns True when the card took it for CMD23 (SET_BLOCK_COUNT): that CMD25
+        then ends by itself and gets no CMD12.
+
+        Pre-erase only speeds writing up, so nothing here fails a write: whatever does not
+        go as the spec says turns it off for this card (until :meth:`initialise`), once,
+        recorded in :attr:`pre_erase_supported`, :attr:`pre_erase_note` and
+        :attr:`fallbacks`, and the CMD25 goes out without it.
 
         A card that does not define ACMD23 treats it as the regular CMD23 (PLSS §4.3.9.1):
         with CMD23 it answers an R1 with APP_CMD clear (item 4) and has set the block count
         (to ``count``: the write is the same); without it the command is illegal, no response
-        and ILLEGAL_COMMAND in the next status (§4.10.1, condition B), which CMD13 tells apart
-        from a command lost to a CRC error (COM_CRC_ERROR, tried once more). Either way ACMD23
-        is not sent to this card again: it only speeds writing up."""
+        and ILLEGAL_COMMAND in the next status (§4.10.1, condition B). After no response,
+        CMD13 asks why: COM_CRC_ERROR (the command was lost on the line) earns one more try.
+        ILLEGAL_COMMAND, a status that says neither (cards that clear the flag at the next
+        command instead of keeping it until it is reported), no answer to CMD13 either, or
+        a second loss: pre-erase off."""
         if self.pre_erase_supported is False:
             return False
-        for attempt in range(2):
+        lost = 0
+        while True:
             try:
                 status = await self.app_command(arch.AppCommand.SET_WR_BLK_ERASE_COUNT, count,
                                                 arch.Response.R1)
-            except SdTimeout:
-                status = arch.CardStatus(await self.card_status())
-                if arch.CardStatus.ILLEGAL_COMMAND in status:
-                    self.pre_erase_supported = False
-                    return False
-                self.retries += 1
-                continue
-            self.pre_erase_supported = bool(status & arch.CardStatus.APP_CMD)
-            return not self.pre_erase_supported
-        raise SdTimeout("ACMD23 got no response twice, and the card does not call it illegal")
+            except SdTimeout as unanswered:
+                why = await self._why_unanswered(unanswered)
+                if why is None:
+                    lost += 1
+                    if lost < 2:
+                        self.retries += 1       # lost on the line: once more
+                        continue
+                    why = f"{unanswered} twice, lost to a CRC error each time"
+                self._no_pre_erase(why)
+                return False
+            except SdError as failure:          # CRC errors throughout, or error bits
+                self._no_pre_erase(f"ACMD23 failed: {failure}")
+                return False
+            if status & arch.CardStatus.APP_CMD:
+                self.pre_erase_supported = True
+                return False
+            self._no_pre_erase("the card took ACMD23 for CMD23 (APP_CMD clear in its R1)")
+            return True
+
+    async def _why_unanswered(self, unanswered):
+        """Why CMD55 or ACMD23 got no response, from CMD13: None when the command was lost
+        to a CRC error (worth another try), else the reason to give up pre-erase."""
+        if self.status_supported is False:
+            return f"{unanswered}, and this card does not answer CMD13 to say why"
+        try:
+            status = arch.CardStatus(await self.card_status())
+        except SdTimeout as error:
+            if self.status_supported is None:
+                self._no_status(f"{error} (asked why ACMD23 went unanswered)")
+            return f"{unanswered}, and CMD13 got none either"
+        except SdError as error:
+            return f"{unanswered}; then CMD13: {error}"
+        if arch.CardStatus.ILLEGAL_COMMAND in status:
+            return f"{unanswered}: an illegal command to this card (ILLEGAL_COMMAND)"
+        if arch.CardStatus.COM_CRC_ERROR in status:
+            return None
+        return (f"{unanswered}, and the card status after it flags neither ILLEGAL_COMMAND "
+                f"nor COM_CRC_ERROR")
 
     async def _write_run(self, lba, first, count, source, pre_erase):
         regs = self.regs

@@ -9,7 +9,7 @@ import pytest
 from maglog.hw.arch import sd as arch
 from maglog.hw.arch.sd import CardState, CardStatus, Response
 from maglog.sim.models.card_image import CardImage
-from maglog.sim.models.sdcard import SdCard, Transaction
+from maglog.sim.models.sdcard import Faults, SdCard, Transaction
 from maglog.sim.backends.amaranth import run_driver
 
 
@@ -143,3 +143,19 @@ def test_late_busy_start(delay):
 
     driver, _ = write_and_read_back(card, [(40, 1), (50, 3)], seed=4, check=finished)
     assert driver.retries == 0 and card.blocks_stored == 4
+
+
+@pytest.mark.parametrize("response, acmd", [(7, "ACMD6"), (9, "ACMD23")])
+def test_app_command_with_a_response_crc_error_is_sent_again_with_its_cmd55(response, acmd):
+    """Responses with a CRC7, counted from 0: CMD8, CMD55, CMD55 (ACMD41 is R3), CMD2, CMD3,
+    CMD7, CMD55, ACMD6 (7), then CMD55, ACMD23 (9). Sent again alone, ACMD6 would reach the
+    card as CMD6 (SWITCH_FUNC) and ACMD23 as CMD23 (SET_BLOCK_COUNT)."""
+    card = new_card(6, acmd41_busy=(1, 1), faults=Faults(corrupt_response_crc=response))
+    driver, _ = write_and_read_back(card, [(30, 2)], seed=6)
+    log = commands(card)
+    names = [t.command for t in log]
+    corrupted = next(k for k, t in enumerate(log) if "corrupted" in t.note)
+    assert names[corrupted] == acmd
+    assert names[corrupted - 1:corrupted + 3] == ["CMD55", acmd, "CMD55", acmd]
+    assert driver.retries == 1 and driver.pre_erase_supported is True
+    assert names.count("CMD6") == names.count("CMD23") == 0
