@@ -18,7 +18,9 @@ Decisions beyond the specification's letter:
   dirty (the file that was being written is kept as its last sync left it).
 * The recording starts at the button: the record gate opens before the file is created,
   so the frames that arrive while ``LOGnnnnn.TXT`` is made (a scan of the root directory,
-  perhaps its growth) wait in the ring and are the file's first bytes.
+  perhaps its growth) wait in the ring and are the file's first bytes. A press during a
+  mount (a dirty card's repair reads the whole FAT) opens the gate at once, between two
+  block reads; the file is created when the mount ends.
 * A full card ends the recording: what fitted is kept, the file is closed cleanly, and the
   loop waits in :attr:`State.FULL` for a button press to mount a card again.
 * A ring overflow (frames dropped) is counted in :attr:`LoggerApp.overflows` (events) and
@@ -168,6 +170,8 @@ class LoggerApp:
         self.flushes = 0
         self.last_flush = None
         self._resume = False
+        self._mounting = None           # the storage being mounted (the press watch)
+        self._armed = False             # the gate opened by a press during the mount
         self._retry_at = 0.0
         self._last_fix = None
         self._shown = (None, None)
@@ -265,7 +269,8 @@ class LoggerApp:
             return
         self._retry_at = self.bus.now() + self.settings.init_retry_s
         storage = DmaStorage(self.bus, self.memory_map, sys_clock_hz=self.sys_clock_hz,
-                             before_block=self._kick)
+                             before_block=self._before_block)
+        self._mounting = storage
         try:
             await storage.driver.initialise()
         except SdNoCard as failure:
@@ -278,17 +283,47 @@ class LoggerApp:
             volume = await Volume.mount(storage.device,
                                         fat_cache_sectors=self.settings.fat_cache_sectors)
         except SdError as failure:
+            await self._disarm()
             self._set_error(FwError.SD_IO, failure)
             return
         except FatError as failure:
+            await self._disarm()
             self._set_error(FwError.NOT_FAT32, failure)
             return
+        finally:
+            self._mounting = None
         self.storage, self.volume = storage, volume
         self._set_error(FwError.NONE)
         self.state = State.IDLE
         resume, self._resume = self._resume and volume.was_dirty, False
-        if resume:
+        if self._armed:
+            # The button was pressed during the mount (a dirty volume's repair takes a
+            # while): that press starts the recording, whose first frames are in the ring.
+            register = self._reg("events", "status")
+            await self.bus.write(register.address, register.encode(button=1))
             await self._start_recording()
+        elif resume:
+            await self._start_recording()
+
+    async def _before_block(self):
+        """Before each block the card path moves: kick the watchdog; during a mount, a
+        button press opens the record gate at once (frames wait in the ring until the
+        mount ends and the file exists)."""
+        await self._kick()
+        if self._mounting is None or self._armed:
+            return
+        register = self._reg("events", "status")
+        if register.decode(await self.bus.read(register.address))["button"]:
+            await self._mounting.clear()
+            self._dropped_at_start = await self._mounting.read("dropped")
+            await self._write("logger", "control", record=1)
+            self._armed = True
+
+    async def _disarm(self):
+        """Close the gate a press during a failed mount opened."""
+        if self._armed:
+            self._armed = False
+            await self._write("logger", "control", record=0)
 
     async def _step_idle(self, events):
         if events["button"]:
@@ -337,11 +372,14 @@ class LoggerApp:
         the file is created, so that the frames arriving meanwhile (creating the file scans
         and may grow the root directory: many block reads on a card with many files) wait
         in the ring and reach the file with the first flush."""
-        await self._quiesce()
-        await self.storage.clear()
-        self._dropped_at_start = await self.storage.read("dropped")
+        if self._armed:                 # the gate opened at the press, during the mount
+            self._armed = False
+        else:
+            await self._quiesce()
+            await self.storage.clear()
+            self._dropped_at_start = await self.storage.read("dropped")
+            await self._write("logger", "control", record=1)
         self.dropped = 0
-        await self._write("logger", "control", record=1)
         try:
             self.file = await self.volume.create_log(await self._now())
         except FatNoNumberError as failure:

@@ -77,9 +77,9 @@ def test_power_returns_the_dirty_card_is_repaired_before_it_is_closed_clean(tmp_
     # and stop: the card closes clean only over a repaired volume, so fsck finds nothing,
     # and the first file keeps every byte synced before the cut.
     first = long_scenario(until=1.2, presses=(0.3, 1.0), stop=0.95)
-    # The repair at power-up reads both FATs (about 0.9 s here); the second press comes
-    # after it.
-    second = long_scenario(until=3.0, presses=(1.5, 2.6), start=1.55, stop=2.55, zda_at=1.4)
+    # The repair at power-up reads both FATs (about 0.9 s here); the press comes during it
+    # and the recording starts there: its first frames wait in the ring for the file.
+    second = long_scenario(until=2.0, presses=(0.3, 1.8), start=0.35, stop=1.75)
     blank = blank_card(tmp_path)
     card = TracingImage.load(blank)
     model = LoggerModel(card, clk_freq=first.clk_freq, channels=first.channels,
