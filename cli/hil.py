@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 from ..sim.reference import COUNTER_NAMES, DEFAULT_MAX_FRAME, Kind, ReferenceFilter
 from ..sim.reference import reference_filter
-from ..sim.stimulus.config import CHANNEL_NAMES
+from ..sim.stimulus.config import CHANNEL_NAMES, shorten
 from ..sim.stimulus.system import FLIGHT_CHANNELS, UART_FRAME_BITS as UART_BITS
 
 
@@ -66,14 +66,15 @@ def open_port(device, baud):
     """Open ``device`` (a path or a pyserial URL such as ``loop://``) at ``baud``, 8N1,
     exclusively, non-blocking reads; :class:`HilError` with the reason if it cannot be."""
     import serial
+    name = shorten(device)                # a device name repeated in errors, cut short
     if not BAUD_RANGE[0] <= baud <= BAUD_RANGE[1]:
-        raise HilError(f"{device}: the baud rate must be from {BAUD_RANGE[0]} to "
+        raise HilError(f"{name}: the baud rate must be from {BAUD_RANGE[0]} to "
                        f"{BAUD_RANGE[1]}, not {baud!r}")
     try:
         return serial.serial_for_url(device, baudrate=baud, timeout=0, write_timeout=None,
                                      exclusive=True)
     except ValueError as error:           # an unknown URL scheme, a baud pyserial refuses
-        raise HilError(f"{device}: {error}") from None
+        raise HilError(f"{name}: {shorten(error, 120)}") from None
     except (serial.SerialException, OSError) as error:
         code = getattr(error, "errno", None)
         if code == errno.ENOENT:
@@ -84,9 +85,11 @@ def open_port(device, baud):
             reason = "permission denied (is the user in the dialout group?)"
         elif code == errno.ENOTTY or "Inappropriate ioctl" in str(error):
             reason = "not a serial port"
+        elif code == errno.ENAMETOOLONG:
+            reason = "the name is too long"
         else:
-            reason = f"cannot use it as a serial port ({error})"
-        raise HilError(f"{device}: {reason}") from None
+            reason = f"cannot use it as a serial port ({shorten(error, 120)})"
+        raise HilError(f"{name}: {reason}") from None
 
 
 # --- replay ---------------------------------------------------------------------------------

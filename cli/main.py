@@ -542,7 +542,8 @@ def _ports_by_channel(specs, names):
     for name, device in specs:
         if name is not None:
             if name in named:
-                raise CliError(f"channel {name} is given two ports ({named[name]}, {device})")
+                raise CliError(f"channel {name} is given two ports ({named[name][:60]}, "
+                               f"{device[:60]})")
             named[name] = device
     free = [n for n in names if n not in named]
     bare = [device for name, device in specs if name is None]
@@ -552,7 +553,7 @@ def _ports_by_channel(specs, names):
     devices = list(named.values())
     for device in devices:
         if devices.count(device) > 1 and not device.startswith("loop://"):
-            raise CliError(f"{device}: given for two channels")
+            raise CliError(f"{device[:60]}: given for two channels")
     return {n: named[n] for n in names if n in named}
 
 
@@ -647,17 +648,15 @@ def _cmd_record(args):
         raise CliError(f"{out}: is a folder; give the log's file name")
     if out.exists() and not args.force:
         raise CliError(f"{out}: exists; recording replaces it (give --force to do so)")
+    # The ports first: a port that cannot be opened leaves an existing log (--force) as it
+    # was, and never removes what -o names (it may be a device such as /dev/null).
+    ports = _open_ports(devices, bauds)
     try:
         log = open(out, "wb")
     except OSError as error:
+        _close_ports(ports)
         raise CliError(f"cannot write {_os_message(error, out)}") from None
     with log:
-        try:
-            ports = _open_ports(devices, bauds)
-        except CliError:
-            log.close()
-            out.unlink()        # nothing recorded: leave no empty log behind
-            raise
         _progress(f"recording to {out}: " + ", ".join(
             f"{n} {devices[n]} at {bauds[n]} baud" for n in ports)
             + (f" for {args.seconds:g} s" if args.seconds else "; Ctrl-C stops"))

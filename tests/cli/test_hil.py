@@ -464,3 +464,27 @@ def test_replay_speed_range(capsys, speed):
     code = exit_.value.code
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "--speed" in err[0]
+
+
+@pytest.mark.parametrize("device", ["p" * 5000, "/tmp/" + "p" * 300, "foo://" + "x" * 5000])
+def test_a_long_device_name_is_echoed_cut_short(capsys, tmp_path, device):
+    for argv in (["replay", "short", "--port", f"mag={device}"],
+                 ["record", "-o", str(tmp_path / "LOG.TXT"), "--port", f"mag={device}",
+                  "--seconds", "1"]):
+        code = main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 1 and err[-1].startswith("maglog: error: ") and len(err[-1]) < 250, err
+
+
+def test_a_port_that_cannot_be_opened_leaves_the_output_as_it_was(capsys, tmp_path):
+    # With --force the log is replaced only once the ports are open: an earlier recording
+    # stays whole, and what -o names is never removed.
+    log = tmp_path / "LOG.TXT"
+    log.write_bytes(b"an earlier recording")
+    code = main(["record", "-o", str(log), "--port", "mag=/nonexistent/tty", "--seconds",
+                 "1", "--force"])
+    assert code == 1 and "no such port" in capsys.readouterr().err
+    assert log.read_bytes() == b"an earlier recording"
+    code = main(["record", "-o", str(tmp_path / "new.txt"), "--port", "mag=foo://x",
+                 "--seconds", "1"])
+    assert code == 1 and not (tmp_path / "new.txt").exists()
