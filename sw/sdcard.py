@@ -562,14 +562,22 @@ class SdCardDriver:
         status = await self._wait_dat(f"writing from block {lba}")
         accepted = await self.bus.read(regs["accepted"].address)
         failed = {k: v for k, v in status.items() if k.startswith("write.") and v}
-        if (multi and not counted) or failed:
-            # CMD12 ends a multi-block write (unless CMD23 set its length), and any write
-            # that went wrong (the card may still be in rcv).
+        # CMD12 ends a multi-block write (unless CMD23 set its length), and any write that
+        # went wrong while the card may still be in rcv. A single block that the card
+        # answered with a token (CRC or write error) or a busy has left rcv (for tran, or
+        # prg): CMD12 would be an illegal command there.
+        left_rcv = not multi and failed and not (failed.keys() & _MAYBE_STILL_RECEIVING)
+        if (multi and not counted) or (failed and not left_rcv):
             await self._stop_quietly()
         if failed:
             await source.cancel()
             return accepted, ", ".join(k[len("write."):] for k in failed)
         return accepted, None
+
+
+#: Write failures after which the card may not have taken the block's end: no token, or
+#: a token without its end bit.
+_MAYBE_STILL_RECEIVING = {"write.no_token", "write.bad_token_end"}
 
 
 def _flags(status, prefix):

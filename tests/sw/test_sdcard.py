@@ -159,3 +159,13 @@ def test_app_command_with_a_response_crc_error_is_sent_again_with_its_cmd55(resp
     assert names[corrupted - 1:corrupted + 3] == ["CMD55", acmd, "CMD55", acmd]
     assert driver.retries == 1 and driver.pre_erase_supported is True
     assert names.count("CMD6") == names.count("CMD23") == 0
+
+
+def test_a_single_block_the_card_rejected_gets_no_cmd12():
+    """After CMD24's block is answered with a CRC error token the card is back in tran,
+    where CMD12 is an illegal command: the driver asks CMD13 and sends the block again."""
+    card = new_card(7, acmd41_busy=(1, 1), faults=Faults(flip_dat_bit=0))
+    driver, _ = write_and_read_back(card, [(9, 1)], seed=7)
+    names = [t.command for t in commands(card)]
+    assert names[names.index("CMD24"):] == ["CMD24", "CMD13", "CMD24", "CMD17"]
+    assert driver.retries == 1 and card.blocks_received == 2
