@@ -309,7 +309,8 @@ def _pick(rng, values):
 #: flag), the values to mutate each option with, and how often an input is left valid
 #: (each valid hdl input elaborates the logger: seconds).
 OPTIONS = {
-    "card:format": ([["image", "{work}/card.img"], ["--size", "64MiB"], ["--label", "MAGLOG"]],
+    "card:format": ([["image", "{work}/card.img"], ["--size", "64MiB"],
+                     ["--cluster-size", "512"], ["--label", "MAGLOG"]],
                     {"image": ("{work}/card.img", "{work}/FILE", "{work}", "/proc/maglog.img",
                                "", "{work}/new/card.img", "{work}/full"),
                      "--size": SIZES, "--label": LABELS,
