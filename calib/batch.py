@@ -200,8 +200,13 @@ def run_batch(jobs, *, scheduler=None, workers=2, serial=False):
     else:
         if workers < 1:
             raise SurveyError(f"workers must be at least 1, not {workers}")
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None)
+        try:
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
+        except Exception as error:          # noqa: BLE001 - whatever Dask raises, one line
+            raise SurveyError(f"cannot start a local Dask cluster of {workers} workers "
+                              f"({type(error).__name__}: {str(error)[:200]}); run the jobs "
+                              "one after another with --serial") from None
         client = Client(cluster)
     try:
         futures = client.map(survey_job, jobs, pure=False)

@@ -491,6 +491,8 @@ def _survey(path, options):
     for line in lines:
         on |= (t >= line.start) & (t <= line.end)
     on &= np.isfinite(levelled) & np.isfinite(track.north)
+    if options.spacing_m is not None and on.any():
+        _check_spacing(options.spacing_m, track.north[on], track.east[on], warnings)
     grid = grid_anomaly(track.north[on], track.east[on], levelled[on],
                         spacing_m=options.spacing_m, method=options.grid_method)
     times["gridding_s"] = _clock() - mark
@@ -590,6 +592,32 @@ def _check_lag(lag, lines, t, track):
                           f"{speed:.3g} m/s it moves every sample {abs(lag) * speed:.0f} m "
                           f"along its line, past half the {spacing:.0f} m line spacing "
                           f"(at most {limit:.2f} s here)")
+
+
+#: A given grid spacing must leave at least this many nodes along each side of the survey.
+MIN_GRID_NODES = 3
+
+
+def _check_spacing(spacing, north, east, warnings):
+    """A given grid spacing against the survey: refused when it leaves fewer than
+    MIN_GRID_NODES nodes along a side (one node is no map), warned when it is coarser than
+    the line spacing (the map no longer resolves what the lines measured)."""
+    from .gridding import line_spacing
+    extent = min(float(np.ptp(north)), float(np.ptp(east)))
+    nodes = int(extent // spacing) + 1
+    if nodes < MIN_GRID_NODES:
+        raise SurveyError(f"grid spacing {spacing:g} m leaves {nodes} node"
+                          f"{'s' * (nodes != 1)} across the survey's {extent:.0f} m: at most "
+                          f"{extent / (MIN_GRID_NODES - 1):.3g} m here (a map needs "
+                          f"{MIN_GRID_NODES} nodes a side)")
+    try:
+        lines = float(line_spacing(north, east)[0])
+    except SurveyError:
+        return
+    if math.isfinite(lines) and spacing > lines:
+        warnings.append(f"the grid spacing {spacing:g} m is coarser than the {lines:.0f} m "
+                        "line spacing: the map does not resolve what the lines measured "
+                        "(its peak is smoothed away)")
 
 
 def _noise_nT(t, raw):
@@ -769,6 +797,10 @@ def _truth_value(truth, path, keys, kind="number", low=-math.inf, high=math.inf,
     SurveyError naming the file and the key."""
     value, where = truth, []
     for key in keys:
+        if where and not isinstance(value, (dict, list)):
+            raise SurveyError(f"{path}: the truth's {'.'.join(where)} must be a "
+                              f"{'list' if isinstance(key, int) else 'table'}, not "
+                              f"{type(value).__name__}")
         where.append(str(key))
         if isinstance(key, int):
             ok = isinstance(value, list) and -len(value) <= key < len(value)

@@ -105,6 +105,12 @@ def _jobs(args, out):
         scenario = args.scenario
         if Path(scenario).exists():
             scenario = str(Path(scenario).resolve())
+        # Read once here: a scenario that cannot be read is one error, not one per seed.
+        from ..sim.stimulus.config import ScenarioError, load_scenario
+        try:
+            load_scenario(scenario)
+        except (ScenarioError, OSError) as error:
+            raise CliError(str(error)) from None
         for seed in args.seeds or [0]:
             jobs.append({"scenario": scenario, "seed": seed, "name": f"seed-{seed}",
                          "out": str((out / f"seed-{seed}").resolve()),
