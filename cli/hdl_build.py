@@ -20,7 +20,7 @@ def check_output_folder(path, *, force=True):
     """Before any elaboration: make the output folder ``path`` (parents too) and check that
     files can be written in it; with ``force`` False it must be new or empty. Returns
     (path, whether it was made here); raises CliError with the reason."""
-    from .main import CliError, _os_message
+    from .main import CliError
     path = Path(path)
     if str(path) == "":
         raise CliError("-o: give a folder name, not ''")
@@ -39,7 +39,7 @@ def check_output_folder(path, *, force=True):
     except OSError as error:
         if made:
             _remove_empty(path)
-        raise CliError(f"cannot write {_os_message(error, path)}") from None
+        raise CliError(f"cannot write {path}: {error.strerror or error}") from None
     return path, made
 
 

@@ -178,7 +178,26 @@ def _logger_from(args):
         raise CliError(str(error)) from None
 
 
+def _check_output_file(output):
+    """Before an elaboration: the file ``output`` (``-``: standard output) can be written
+    (its folder made, a probe file written and removed); CliError with the reason."""
+    if output == "-":
+        return
+    path = Path(output)
+    if path.is_dir():
+        raise CliError(f"{path}: is a folder; give -o a file name")
+    folder = path.parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".maglog-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as error:
+        raise CliError(f"cannot write {path}: {error.strerror or error}") from None
+
+
 def _cmd_hdl_verilog(args):
+    _check_output_file(args.output)
     if args.frontend:
         from ..hw.frontend import TOPLEVEL_NAME, generate_verilog
         text = generate_verilog(_front_end_from(args))
@@ -190,6 +209,7 @@ def _cmd_hdl_verilog(args):
 
 
 def _cmd_hdl_regmap(args):
+    _check_output_file(args.output)
     from ..hw.top import Logger
     from ..sw.regmap import RegisterMap, to_c_header, to_markdown
     memory_map = Logger().csr_memory_map

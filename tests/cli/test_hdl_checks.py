@@ -97,3 +97,22 @@ def test_board_name_echo_is_cut_short(tmp_path, capsys, no_elaboration):
     line = _one_line(capsys, _main(["hdl", "build", "--board", "b" * 10_000, "-o",
                                    str(tmp_path / "p")]))
     assert len(line) < 200 and "unknown board" in line
+
+
+@pytest.mark.parametrize("command", [["hdl", "verilog"], ["hdl", "verilog", "--frontend"],
+                                     ["hdl", "regmap"]])
+@pytest.mark.parametrize("target", ["/proc/maglog-x.v", "{dir}", "{file}/sub.v"])
+def test_verilog_and_regmap_check_the_output_first(tmp_path, capsys, monkeypatch, command,
+                                                   target):
+    from maglog.hw import frontend, top
+
+    def elaborates(*args, **kwargs):
+        raise AssertionError("elaborated before the output was checked")
+    monkeypatch.setattr(frontend, "generate_verilog", elaborates)
+    monkeypatch.setattr(top, "generate_verilog", elaborates)
+    monkeypatch.setattr(top, "Logger", elaborates)
+    (tmp_path / "FILE").write_text("mine")
+    target = target.replace("{dir}", str(tmp_path)).replace("{file}", str(tmp_path / "FILE"))
+    line = _one_line(capsys, _main(command + ["-o", target]))
+    assert line.startswith("maglog: error: ") and ".maglog-write-test" not in line, line
+    assert (tmp_path / "FILE").read_text() == "mine"
