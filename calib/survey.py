@@ -33,6 +33,23 @@ lowest fix) and the direction cosines move (their band-passed RMS over 4 s above
 ``box=(start, end)`` (seconds of day, UTC) overrides it. The figure of merit sums the
 band-passed peak-to-peak over the box's twelve equal parts (four headings of roll, pitch and
 yaw, as the scenario flies them).
+
+What the data allow, and what the result is checked against
+-------------------------------------------------------------
+Given settings are checked against the flight: ``ridge`` within :data:`RIDGE_RANGE` (the
+range "auto" searches; below it the 18 terms' diagonal induced terms, which sum to the
+cesium's own reading, reproduce the measurement and the "compensation" removes the
+survey); ``band`` from tolles_lawson.BAND_FLOOR_HZ to BAND_CEILING x the cesium's rate, its
+high edge at least :data:`BAND_MIN_RATIO` x its low one; ``lag_s`` at most what moves a
+sample half the line spacing along its line; ``spacing_m`` leaving at least
+:data:`MIN_GRID_NODES` nodes a side. The cesium's spikes and readings outside the Earth's
+range are screened out (:mod:`.screen`), a cesium stuck in the box is refused. The result
+carries ``warnings`` (printed, at the top of the report, in survey.json) where its own
+diagnostics contradict it: a box residual below :data:`NOISE_FLOOR_FRACTION` of the
+cesium's own noise in the band (the noise from its third differences), a cesium repeating
+readings, a lag at the edge of its scan (not found: none applied), a given lag the
+crossovers contradict, a field :data:`IGRF_MISFIT_NT` off IGRF, a grid coarser than the
+lines. A ``truth`` must be this flight's (date, site, lines) or it is refused.
 """
 
 from __future__ import annotations

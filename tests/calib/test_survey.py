@@ -354,6 +354,8 @@ def _box_readings(flight):
     (lambda t: t.update(timestamp="yesterday"), "timestamp 'yesterday' is not an ISO date"),
     (lambda t: t["reference"].pop("cesium_noise_nT"), "no reference.cesium_noise_nT"),
     (lambda t: t["survey"]["lines"][0].update(end_s=-1.0), "survey.lines.0.end_s"),
+    (lambda t: t["survey"]["dipoles"].__setitem__(0, None),
+     "the truth's survey.dipoles.0 must be a table, not NoneType"),
 ])
 def test_a_damaged_truth_is_refused_in_one_line(flight, tmp_path, edit, message):
     truth = json.loads(flight["truth"].read_text())
