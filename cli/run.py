@@ -79,12 +79,15 @@ def load(path, *, max_seconds=None, backend=None):
     except OSError as error:
         raise RunError(f"{path}: {error.strerror or error}") from None
     seconds, cycles, wall = run_size(scenario, backend)
+    on = f", ~{_duration(wall)} on {backend}" if wall else ""
     if max_seconds is not None and seconds > max_seconds:
-        on = f", ~{_duration(wall)} on {backend}" if wall else ""
         raise RunError(f"{scenario.source}: this run needs about {seconds:,.0f} s of simulated "
                        f"flight ({cycles:.3g} clock cycles{on}), more than --max-seconds "
                        f"{max_seconds:g}; shorten the scenario or raise --max-seconds (up to "
                        f"{MAX_SCENARIO_S:g})")
+    if max_seconds is not None:
+        _say(f"{scenario.source}: about {seconds:,.0f} s of simulated flight ({cycles:.3g} "
+             f"clock cycles{on}), within --max-seconds {max_seconds:g}")
     try:
         return scenario.build()
     except ScenarioError as error:

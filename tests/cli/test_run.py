@@ -155,7 +155,11 @@ def test_a_run_is_sized_before_it_starts_and_refused_above_max_seconds(tmp_path,
     assert status == 1 and "more than --max-seconds 10;" in capsys.readouterr().err
     status = main(["simulate", "short", "-o", str(tmp_path / "card.img"), "--backend",
                    "model", "--max-seconds", "30", "--quiet"])
-    assert status == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert status == 0, err
+    # The size is said before the build, within the limit too.
+    assert "short.toml: about 21 s of simulated flight (3.87e+07 clock cycles), within " \
+           "--max-seconds 30" in err.splitlines()[0]
     assert (tmp_path / "card.img").is_file()
 
 
