@@ -1,7 +1,8 @@
 """Mutation run of the surfaces issue 23's fuzz reached first: its counts as JSON.
 
 Runs the seeded inputs of ``tests/cli/mutants_surfaces.py`` (scenario TOML files through
-``maglog simulate --backend model --max-seconds 40``, ``card format``, ``hdl`` verilog /
+``maglog simulate --backend model --max-seconds 40``, calibration flights through ``maglog
+run --backend model``, ``card format``, ``hdl`` verilog /
 regmap / build / component, ``replay`` and ``record`` on ``loop://`` ports) through
 ``maglog.cli.main.main`` in process, one worker per core with a time and address-space limit
 per input, and writes the outcomes by class to ``bench/results/surfaces_mutation.json``:

@@ -1,5 +1,6 @@
 """A seeded mutation run of the surfaces issue 23's fuzz reached first: scenario TOML files
-(through ``maglog simulate --backend model`` with a small ``--max-seconds``), ``card
+(through ``maglog simulate --backend model`` with a small ``--max-seconds``; calibration
+flights through ``maglog run --backend model``, their parameter verdict judged), ``card
 format``, ``hdl`` (verilog, regmap, build, component), ``replay`` and ``record`` (pyserial
 ``loop://`` ports). Each input runs through ``maglog.cli.main.main`` in process, in worker
 processes (one per core) with an alarm and an address-space limit per input, and is
@@ -9,8 +10,8 @@ Outcomes (:data:`OUTCOMES`):
 
 ``ok``
     exit 0 and what the command writes is there and well formed (the card image, strict
-    JSON truth and simulation record; the Verilog's module; the project's build script; the
-    log file);
+    JSON truth and simulation record; the run's summary.json, no parameter passed that the
+    flight does not determine; the Verilog's module; the project's build script; the log);
 ``error``
     exit 1 and a last line ``maglog: error: ...`` of at most :data:`LINE_MAX` characters;
 ``usage``
@@ -49,7 +50,8 @@ import numpy as np
 #: Input classes, in the order a run cycles through them (scenario files weigh most).
 CLASSES = ("scenario:value", "scenario:structure", "scenario:value", "scenario:sensor",
            "card:format", "hdl:verilog", "scenario:value", "hdl:regmap", "hdl:build",
-           "hdl:component", "scenario:structure", "replay", "record", "scenario:sensor")
+           "hdl:component", "scenario:structure", "replay", "record", "scenario:sensor",
+           "scenario:run")
 OUTCOMES = ("ok", "error", "usage", "traceback", "hang", "oom", "nonsense")
 #: The failures the run exists to find.
 FAILURES = ("traceback", "hang", "oom", "nonsense")
@@ -293,6 +295,32 @@ def _scenario_sensor(rng):
     return _document(data), detail
 
 
+def _scenario_run(rng):
+    """A calibration flight for ``maglog run``: one to four headings, swings from none to
+    60°, turbulence, noise: flights that determine the parameters and flights that do
+    not, for the run's verdict."""
+    import copy
+    data = copy.deepcopy(BASE)
+    count = int(rng.integers(1, 5))
+    cal = {"headings_deg": [float(h) for h in rng.uniform(-180, 180, count)],
+           "seconds": float(rng.uniform(4, 20)), "turn_s": float(rng.uniform(1, 4)),
+           "roll_deg": float(rng.choice([0.0, 2.0, rng.uniform(0, 60)])),
+           "pitch_deg": float(rng.choice([0.0, 2.0, rng.uniform(0, 60)])),
+           "yaw_deg": float(rng.choice([0.0, rng.uniform(0, 180)]))}
+    data["flight"]["calibration"] = cal
+    data["flight"]["dynamics"] = {"turbulence_deg": float(rng.choice([0.0, 0.7, 5.0]))}
+    data["errors"] = {"noise_nT": float(rng.choice([0.0, 5.0, 50.0]))}
+    del data["faults"]
+    detail = (f"{count} headings x {cal['seconds']:.1f} s, roll {cal['roll_deg']:.3g}, "
+              f"pitch {cal['pitch_deg']:.3g}, yaw {cal['yaw_deg']:.3g}")
+    return _document(data), detail
+
+
+def _run_argv():
+    return ["run", "{work}/scenario.toml", "-o", "{work}/out", "--backend", "model",
+            "--quiet", "--quick-papers", "--max-seconds", "120"]
+
+
 def _simulate_argv(rng):
     argv = ["simulate", "{work}/scenario.toml", "-o", "{work}/out/card.img", "--backend",
             "model", "--quiet", "--max-seconds", MAX_SECONDS]
@@ -448,6 +476,9 @@ def make_case(index, seed):
         kind, detail, argv, judge = options[index - len(scenarios)]
         return Case(index, kind, detail, argv, judge, {"FILE": b"mine"})
     kind = CLASSES[index % len(CLASSES)]
+    if kind == "scenario:run":
+        text, detail = _scenario_run(rng)
+        return Case(index, kind, detail, _run_argv(), "run", {"scenario.toml": text.encode()})
     if kind.startswith("scenario:"):
         make = {"scenario:value": _scenario_value, "scenario:structure": _scenario_structure,
                 "scenario:sensor": _scenario_sensor}[kind]
@@ -532,10 +563,8 @@ def run_case(case, time_limit=TIME_LIMIT):
 
 
 def _classify(case, status, out, err, work):
-    lines = [line for line in err.strip().splitlines()
-             if not line.startswith(("[", "note:", "warning:", "simulating", "card image",
-                                     "replaying", "t = ", "recording to", "wrote "))
-             and "no port given" not in line]
+    # The lines that say an error (progress, notes and warnings are other lines).
+    lines = [line for line in err.strip().splitlines() if line.startswith("maglog")]
     last = err.strip().splitlines()[-1] if err.strip() else ""
     if "Traceback" in err:
         return {"outcome": "traceback", "reason": "a traceback printed: " + last[:160]}
@@ -547,6 +576,8 @@ def _classify(case, status, out, err, work):
                                                      f"{last[:120]!r}"}
         if len(lines) > 1:
             return {"outcome": "nonsense", "reason": f"{len(lines)} error lines: {lines[:2]!r}"}
+    if status == 1 and case.judge == "run" and "does not match its scenario's truth" in last:
+        return _judge_run(work, failed=True, last=last)
     if status == 1:
         if last.startswith("maglog: error: "):
             return {"outcome": "error", "reason": last[len("maglog: error: "):][:200]}
@@ -566,10 +597,36 @@ def _strict_json(path):
     return json.loads(path.read_text(), parse_constant=refuse)
 
 
+def _judge_run(work, *, failed, last=""):
+    """``maglog run``'s summary.json: strict JSON, its verdict the checks', and no
+    parameter passed on a z its own sigma made small (not determined by the flight)."""
+    try:
+        summary = _strict_json(work / "out" / "report" / "summary.json")
+    except (OSError, ValueError) as error:
+        return {"outcome": "nonsense", "reason": f"summary.json: {error}"[:200]}
+    checks = {c["name"]: c for c in summary.get("checks", [])}
+    if summary.get("ok") is failed or bool(summary.get("failed")) is not failed:
+        return {"outcome": "nonsense", "reason": f"exit status and summary disagree: ok "
+                                                 f"{summary.get('ok')}, {last[:100]!r}"}
+    tol = summary["tolerances"]
+    rows = summary.get("parameters") or {}
+    for name, row in rows.items():
+        absolute = tol["c_abs_nT"] if name.startswith("c") else tol["k_abs"]
+        if row.get("determined") is False and abs(row["difference"]) > absolute \
+                and checks.get("parameters", {}).get("status") == "pass":
+            return {"outcome": "nonsense", "reason": f"{name} passed, {row['difference']:+.3g} "
+                                                     "off and not determined by the flight"}
+    verdict = checks.get("parameters", {})
+    return {"outcome": "error" if failed else "ok",
+            "reason": f"parameters {verdict.get('status')}: {verdict.get('detail', '')}"[:200]}
+
+
 def _judge(case, out, work):
     """An exit 0: is what the command promises there?"""
     judge = case.judge
     try:
+        if judge == "run":
+            return _judge_run(work, failed=False)
         if judge == "simulate":
             folder = work / "out"
             truth = _strict_json(folder / "truth.json")

@@ -97,3 +97,30 @@ def test_the_run_finds_each_kind_of_failure(monkeypatch):
         print("maglog: error: scenario.toml: [scenario] seed must be ...", file=sys.stderr)
         return 1
     assert verdict(refused) == "error"
+
+
+def test_a_run_that_passes_an_undetermined_parameter_is_nonsense(monkeypatch):
+    # The run judge reads summary.json: a parameter 700 nT off whose sigma made its z small
+    # must not pass (issue 23: "PASS parameters ... largest |z| 0.0").
+    import json
+    from maglog.cli import main as cli
+    from maglog.cli.summary import TOLERANCES
+    case = mutants.Case(0, "scenario:run", "test", ["run"], "run")
+    mutants._worker_init(memory_limit=None)
+
+    def writes(status, determined):
+        def fake(argv):
+            report = Path.cwd() / "out" / "report"
+            report.mkdir(parents=True)
+            summary = {"ok": status == "pass", "failed": [] if status == "pass" else
+                       ["parameters"], "tolerances": TOLERANCES,
+                       "checks": [{"name": "parameters", "status": status, "detail": ""}],
+                       "parameters": {"c1": {"difference": 700.0, "sigma": 1e9, "z": 0.0,
+                                             "determined": determined}}}
+            (report / "summary.json").write_text(json.dumps(summary))
+            return 0 if status == "pass" else 1
+        return fake
+    monkeypatch.setattr(cli, "main", writes("pass", False))
+    assert mutants.run_case(case)["outcome"] == "nonsense"
+    monkeypatch.setattr(cli, "main", writes("pass", True))
+    assert mutants.run_case(case)["outcome"] == "ok"
