@@ -173,6 +173,9 @@ def probe_scheduler(address, timeout=PROBE_TIMEOUT_S):
     except OSError as error:
         raise SurveyError(f"cannot reach the Dask scheduler at {text[:80]}: "
                           f"{error.strerror or error}") from None
+    except (UnicodeError, ValueError) as error:     # a host name no resolver takes
+        raise SurveyError(f"cannot reach the Dask scheduler at {text[:80]}: {host[:40]!r} "
+                          f"is not a host name ({error})") from None
     if len(head) < 8:
         raise SurveyError(f"no Dask scheduler at {text[:80]}: the connection was closed "
                           "without a handshake")

@@ -95,6 +95,10 @@ BAND_MIN_RATIO = 1.5
 #: cesium readings identical is a stuck reference (refused), this share a suspect one
 #: (warned); a median |compensated - IGRF| above this is not this place or date.
 NOISE_FLOOR_FRACTION = 0.3
+#: A box whose band holds more than UNCOMPENSATED_NOISE x the cesium's noise there (the
+#: interference to remove) and an improvement ratio below UNCOMPENSATED_IR: not compensated.
+UNCOMPENSATED_NOISE = 5.0
+UNCOMPENSATED_IR = 1.2
 STUCK_REFUSE = 0.5
 STUCK_WARN = 0.05
 IGRF_MISFIT_NT = 2000.0
@@ -525,7 +529,29 @@ def _survey(path, options):
     if truth is not None:
         _check_truth_flight(truth, options.truth, result)
         result.scores = score_against_truth(result, options.truth)
+        result.warnings += _truth_misfit(result.scores)
     return result
+
+
+#: A map further than this fraction of the true anomaly's largest |value| (RMS on the grid's
+#: nodes, and at least TRUTH_MISFIT_NT) from the truth is warned about.
+TRUTH_MISFIT_FRACTION = 0.15
+TRUTH_MISFIT_NT = 2.0
+
+
+def _truth_misfit(scores):
+    """A warning when the map and the truth disagree by much more than a reduction's error:
+    the map is wrong, or the truth (its sources, heights) is not this flight's."""
+    rms = scores.get("grid_rms_nT")
+    span = max(abs(v) for v in scores.get("true_anomaly_range_nT", [0.0]))
+    if rms is None or not math.isfinite(rms):
+        return []
+    if rms > max(TRUTH_MISFIT_NT, TRUTH_MISFIT_FRACTION * span):
+        return [f"the map is {rms:.1f} nT RMS off the truth's anomaly (its largest "
+                f"|value| {span:.1f} nT): either the map is wrong or the truth (its sources, "
+                "site or heights) is not this flight's; its scores are not a measure of "
+                "this reduction"]
+    return []
 
 
 def _screen_cesium(t, field, notes):
@@ -675,6 +701,15 @@ def _diagnose(result):
                    "reproduced the measurement itself, not the interference, and the map "
                    "lost the anomaly with it (a ridge, band or box that does not "
                    "determine the terms)")
+    elif (math.isfinite(expected) and before > UNCOMPENSATED_NOISE * expected
+          and after > before / UNCOMPENSATED_IR):
+        out.append(f"the compensation removed next to nothing: in the calibration box the "
+                   f"{band[0]:.3g}-{band[1]:.3g} Hz band holds {before:.3g} nT RMS, "
+                   f"{before / max(expected, 1e-300):.0f} times the cesium's own noise "
+                   f"there, and {after:.3g} nT are left (improvement ratio "
+                   f"{before / after:.3g}): the platform's interference stays in the map "
+                   f"(a ridge of {result.tl.ridge_alpha:.3g} holds the terms at zero, or the "
+                   "band misses the manoeuvres)")
     misfit = float(np.nanmedian(np.abs(result.compensated - result.igrf)))
     if misfit > IGRF_MISFIT_NT:
         out.append(f"the field is {misfit:,.0f} nT (median) off IGRF at the GPS positions "
@@ -867,8 +902,9 @@ def _check_truth(truth, path):
     value("survey", "origin", "ground_alt_m", low=-1e4, high=1e5)
     value("survey", "igrf_site_ned_nT", kind="vector", size=3)
     for k in range(len(value("survey", "dipoles", kind="list"))):
-        for key in ("north_m", "east_m", "depth_m"):
+        for key in ("north_m", "east_m"):
             value("survey", "dipoles", k, key, low=-1e7, high=1e7)
+        value("survey", "dipoles", k, "depth_m", low=0, high=1e7)      # buried
         value("survey", "dipoles", k, "moment_ned_Am2", kind="vector", size=3)
     for key in ("start_seconds_of_day", "lon_deg", "amplitude_nT", "pulsation_nT"):
         value("survey", "diurnal", key, low=-1e6, high=1e6)

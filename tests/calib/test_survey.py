@@ -559,6 +559,8 @@ def test_scheduler_addresses_that_are_no_scheduler(flight, tmp_path, capsys):
         for address in ("tcp://127.0.0.1", "tcp://127.0.0.1:99999", "x"):
             with pytest.raises(SurveyError, match="expected tcp://HOST:PORT"):
                 probe_scheduler(address)
+        with pytest.raises(SurveyError, match="is not a host name"):
+            probe_scheduler("tcp://" + "h" * 300 + ":1")          # the resolver refuses it
     finally:
         httpd.shutdown()
         banner.close()
@@ -586,3 +588,26 @@ def test_cli_reads_a_scenario_once_before_its_seeds(tmp_path, capsys):
                                   "1-500", "-o", str(tmp_path / "out")], capsys)
     _one_error_line(status, err, "nosuch.toml: cannot read the scenario")
     assert not (tmp_path / "out" / "seed-1").exists()
+
+
+def test_a_truth_whose_sources_are_not_this_flights_is_warned(flight, result, tmp_path):
+    """A truth of this flight's date, site and lines but other sources (moments tripled):
+    only the scores can tell, and they are said not to measure this reduction."""
+    assert result.warnings == []
+    truth = json.loads(flight["truth"].read_text())
+    for dipole in truth["survey"]["dipoles"]:
+        dipole["moment_ned_Am2"] = [3 * m for m in dipole["moment_ned_Am2"]]
+    path = tmp_path / "truth.json"
+    path.write_text(json.dumps(truth))
+    other = sv.survey_card(flight["log"], sv.SurveyOptions(truth=path, compare_deinterf=False))
+    assert other.scores["grid_rms_nT"] > 50
+    assert any("off the truth's anomaly" in w and "not this flight's" in w
+               for w in other.warnings), other.warnings
+
+
+def test_a_compensation_that_removes_nothing_is_warned(flight):
+    """--ridge 1e6 holds every term at zero: the box keeps 46 times the cesium's noise of
+    interference (improvement ratio 1.00) and the map carries it, which is said."""
+    held = sv.survey_card(flight["log"], sv.SurveyOptions(ridge=1e6, compare_deinterf=False))
+    assert any(w.startswith("the compensation removed next to nothing") for w in
+               held.warnings), held.warnings
