@@ -26,11 +26,14 @@ image left (after each cut, and the last, closed cleanly) is judged:
   starts at the button), and after a cut at least what the last sync before it made
   durable (from the traced reference run).
 
-The default suite judges a few double cuts on the 512-byte card; the slow suite the whole
+The default suite judges two double cuts on the 512-byte card (the second during the
+repair, then during the recording); the slow suite the whole
 campaign (:data:`CUTS` per card, as single and as double cuts).
 """
 
+import collections
 import random
+import re
 import subprocess
 
 import pytest
@@ -42,6 +45,7 @@ from maglog.sim.models.logger import LoggerModel
 from maglog.sim.stimulus import sentences
 from maglog.sim.stimulus.system import SystemScenario, Timeline, short_scenario
 from maglog.sw.app import AppSettings, FwError, LoggerApp, State
+from maglog.sw.fat32 import Volume
 
 from ..sw.test_fat32 import fsck_findings, mtools_env
 from .test_power_cut import Layout, fsck_kinds, frame_prefix, log_entry_size
@@ -59,7 +63,7 @@ CARDS = {
 #: record, stop) and as double cuts (cut, power up, cut again, power up, record, stop).
 CUTS = {"512": 10, "4k": 12, "32k": 12}
 #: The default suite's double cuts on the 512-byte card.
-QUICK_DOUBLE_CUTS = 3
+QUICK_DOUBLE_CUTS = 2
 #: Runs after the first start the recording here (after the repair at mount: ~1 s).
 LATER_PRESS = 1.5
 
@@ -194,9 +198,10 @@ def scenario(press, seed):
     return result
 
 
-def record(card, scene, cut=None):
+def record(card, scene, cut=None, mounted=None):
     """Run the firmware on ``card`` (a TracingImage) through ``scene``, cut after ``cut``
-    blocks if given; returns ``(RunResult, [LoggerApp])``."""
+    blocks if given; returns ``(RunResult, [LoggerApp])``. ``mounted`` (a list) gets the
+    blocks stored when the first mount ended."""
     model = LoggerModel(card, clk_freq=scene.clk_freq, channels=scene.channels,
                         debounce_s=scene.debounce_s)
     for burst in scene.bursts:
@@ -213,7 +218,18 @@ def record(card, scene, cut=None):
         apps.append(app)
         await app.run()
 
-    return model.run(firmware, until=scene.until), apps
+    if mounted is None:
+        return model.run(firmware, until=scene.until), apps
+    mount = Volume.mount.__func__
+
+    async def watched(cls, *args, **kwargs):
+        volume = await mount(cls, *args, **kwargs)
+        mounted.append(len(card.writes))
+        return volume
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Volume, "mount", classmethod(watched))
+        return model.run(firmware, until=scene.until), apps
 
 
 class Campaign:
@@ -221,6 +237,8 @@ class Campaign:
 
     def __init__(self, name, folder, tools):
         self.name, self.folder, self.tools = name, folder, tools
+        #: Where the second cuts fell (see :meth:`run`).
+        self.stats = collections.Counter()
         self.blank = make_card(name, folder, tools)
         self.old = files_of(self.blank)
         self.scenes = [scenario(0.3, 1), scenario(LATER_PRESS, 2), scenario(LATER_PRESS, 3)]
@@ -255,7 +273,10 @@ class Campaign:
 
     def run(self, first_cut, second_cut=None):
         """Cut, power up (record, or cut again and power up once more to record), stop:
-        the problems found in every image left, and how many images were judged."""
+        the problems found in every image left, and how many images were judged.
+        ``second_cut`` is ``(where, fraction)``: the second run's cut falls at ``fraction``
+        of the blocks it stores during the mount (``"mount"``: the repair) or after it
+        (``"record"``), as an uncut trial of the same run shows."""
         problems, judged = [], 0
         image = self.folder / f"run-{first_cut}-{second_cut}.img"
         card = TracingImage.load(self.blank)
@@ -263,6 +284,15 @@ class Campaign:
         cuts = [first_cut] + ([second_cut] if second_cut is not None else [])
         for number, scene in enumerate(self.scenes[:len(cuts) + 1]):
             cut = cuts[number] if number < len(cuts) else None
+            if number == 1 and cut is not None:
+                trial, mounted = TracingImage.load(image), []
+                record(trial, scene, mounted=mounted)
+                kind, fraction = cut
+                at_mount = mounted[0] if mounted else len(trial.writes)
+                # (A clean volume's mount writes nothing: cut while recording then.)
+                low, high = ((1, at_mount) if kind == "mount" and at_mount
+                             else (at_mount + 1, len(trial.writes) - 1))
+                cut = cuts[1] = low + int(fraction * (high - low)) if high >= low else None
             result, apps = record(card, scene, cut)
             card.save(image)
             judged += 1
@@ -270,6 +300,12 @@ class Campaign:
             if cut is not None and not result.power_cut:
                 # The run ended before the cut: the card was closed by the button.
                 cut = None
+            if number == 1 and second_cut is not None:
+                self.stats["second cut " + (
+                    "not reached" if cut is None else "during the mount (repair)"
+                    if apps[-1].volume is None else "while recording")] += 1
+                if cut is None:
+                    problems.append(f"{where}: no block to cut at {second_cut}")
             lines = fsck_findings(self.tools["fsck.fat"], image, self.folder)
             if cut is None:
                 problems += [f"{where}, closed: fsck.fat: {line}" for line in lines]
@@ -354,14 +390,15 @@ def test_double_cuts_on_a_nearly_full_card_of_others(tmp_path_factory, tools):
     campaign = campaign_of("512", tmp_path_factory, tools)
     rng = random.Random(SEED)
     failures, judged = {}, 0
-    for first in campaign.cuts(QUICK_DOUBLE_CUTS, seed=SEED):
-        second = rng.randrange(1, 40)
+    for first, where in zip(campaign.cuts(QUICK_DOUBLE_CUTS, seed=SEED), ["mount", "record"]):
+        second = (where, rng.random())
         problems, count = campaign.run(first, second)
         judged += count
         if problems:
             failures[(first, second)] = problems
     assert failures == {}
     assert judged >= 2 * QUICK_DOUBLE_CUTS
+    assert campaign.stats["second cut during the mount (repair)"] >= 1, campaign.stats
 
 
 @pytest.mark.slow
@@ -373,14 +410,25 @@ def test_power_cut_campaign_on_cards_of_others(tmp_path_factory, tools, name, do
     failures, judged = {}, 0
     count = CUTS[name]
     for first in campaign.cuts(count, seed=f"{SEED}-{double}"):
-        # The second cut: during the repair at mount and the file's creation (the first
-        # blocks), or during the recording.
-        second = (rng.choice([rng.randrange(1, 12), rng.randrange(12, 120)]) if double
-                  else None)
+        # The second cut: during the repair at mount, or during the recording after it.
+        second = ((rng.choice(["mount", "record"]), rng.random()) if double else None)
         problems, number = campaign.run(first, second)
         judged += number
         if problems:
             failures[(first, second)] = problems
-    print(f"{name} {'double' if double else 'single'}: {judged} images judged, "
-          f"{len(failures)} runs with findings")
+    kinds = collections.Counter(finding_kind(problem) for problems in failures.values()
+                                for problem in problems)
+    print(f"{name} {'double' if double else 'single'}: {count} "
+          f"cut sequences, {judged} images judged, {len(failures)} sequences with findings "
+          f"{dict(sorted(kinds.items()))}; {dict(sorted(campaign.stats.items()))}")
     assert failures == {}
+    if double:
+        assert campaign.stats["second cut during the mount (repair)"] >= 2, campaign.stats
+        assert campaign.stats["second cut while recording"] >= 2, campaign.stats
+
+
+def finding_kind(problem):
+    """A problem line without its run and numbers (to count findings by kind)."""
+    text = re.sub(r"^run \d+ \(cuts \[[\d, ]+\]\)", "", problem)
+    text = re.sub(r"/LOG\d+\.TXT", "LOG", text)
+    return re.sub(r"\d+", "N", text)
