@@ -1,6 +1,10 @@
-"""A seeded mutation run of ``maglog calibrate``: card images, logs and option values
-changed as a new user would meet them, each run through ``maglog.cli.main.main`` in
-process, in worker processes (one per core) with an alarm per input, and classified.
+"""A seeded mutation run of ``maglog calibrate`` and ``maglog survey``: card images, logs,
+truth and base-station files and option values changed as a new user would meet them, each
+run through ``maglog.cli.main.main`` in process, in worker processes (one per core) with an
+alarm per input, and classified. (``survey`` exits 0 are judged by :func:`_judge_survey`:
+survey.json strict JSON, report.html valid HTML, and an improvement ratio in
+:data:`PLAUSIBLE_IR` and a map within :data:`PLAUSIBLE_GRID_RMS_NT` of the truth, or
+warnings saying why not.)
 
 Outcomes (:data:`OUTCOMES`):
 
@@ -607,7 +611,7 @@ def run_case(case, base, time_limit=TIME_LIMIT):
         finally:
             signal.alarm(0)
         result.update(_classify(status, err.getvalue(), Path(subst(case.out))
-                                if case.out else work))
+                                if case.out else work, survey=case.kind.startswith("survey:")))
     except _Timeout:
         result.update(outcome="hang", reason=f"no answer within {time_limit} s")
     except Exception as error:           # what escaped main: the failure counted here
@@ -624,7 +628,7 @@ def run_case(case, base, time_limit=TIME_LIMIT):
     return result
 
 
-def _classify(status, err, out):
+def _classify(status, err, out, survey=False):
     last = err.strip().splitlines()[-1] if err.strip() else ""
     if status == 1:
         if last.startswith("maglog: error: ") and "Traceback" not in err:
@@ -634,7 +638,7 @@ def _classify(status, err, out):
         return {"outcome": "usage", "reason": last[:200]}
     if status not in (0, None):
         return {"outcome": "nonsense", "reason": f"exit status {status!r}: {last[:160]!r}"}
-    return _judge_report(out)
+    return _judge_survey(out) if survey else _judge_report(out)
 
 
 def _judge_report(out):
@@ -669,8 +673,10 @@ def _judge_report(out):
                                              "no warning"}
 
 
-def run(count, *, seed=10, tools=None, processes=None, time_limit=TIME_LIMIT, progress=None):
-    """Generate and run ``count`` inputs; the results (one dict per input) in input order.
+def run(count, *, seed=10, tools=None, processes=None, time_limit=TIME_LIMIT, progress=None,
+        survey=0):
+    """Generate and run ``count`` inputs of ``maglog calibrate`` and ``survey`` of ``maglog
+    survey`` (numbered after them); the results (one dict per input) in input order.
 
     ``tools`` are the FAT tools (name -> path) the card images are built with: the tests
     pass the ``fat_tools`` fixture's; without them the card-image classes are left out."""
@@ -678,6 +684,9 @@ def run(count, *, seed=10, tools=None, processes=None, time_limit=TIME_LIMIT, pr
         facts = make_base(folder, tools)
         facts["base"] = folder
         cases = [make_case(i, seed, facts) for i in range(count)]
+        if survey:
+            facts["survey"] = make_survey_base(folder)
+            cases += [make_survey_case(count + j, seed, facts, j) for j in range(survey)]
         processes = processes or min(2, os.cpu_count() or 1)
         context = multiprocessing.get_context("spawn")
         results = []
@@ -695,6 +704,10 @@ def run(count, *, seed=10, tools=None, processes=None, time_limit=TIME_LIMIT, pr
         return results, tools is not None
 
 
+def is_survey(result):
+    return result["kind"].startswith("survey:")
+
+
 def counts(results):
     """Totals by outcome, and by class and outcome."""
     total = Counter(r["outcome"] for r in results)
@@ -707,3 +720,325 @@ def counts(results):
 
 def failures(results):
     return [r for r in results if r["outcome"] in FAILURES]
+
+
+# --- maglog survey --------------------------------------------------------------------------
+#
+# A short survey flight (the built-in ``survey`` scenario cut to four 200-m lines and two tie
+# lines, as tests/calib/test_survey.py flies it) is built once per run; its log, truth.json
+# and base.csv are the base material. Survey inputs are numbered after the calibrate ones and
+# cycle through SURVEY_SCHEDULE: most end before the reduction (a truth, base station,
+# option or address refused when read), a few go through it (about 10 s each).
+
+SURVEY_CLASSES = ("survey:truth", "survey:base", "survey:option", "survey:card",
+                  "survey:scheduler", "survey:log")
+#: The order survey inputs take their classes in (a quarter are mutated logs, each a whole
+#: reduction: about a second in a warm worker, against a hundredth for a refusal).
+SURVEY_SCHEDULE = ("survey:truth", "survey:option", "survey:log", "survey:base",
+                   "survey:truth", "survey:log", "survey:option", "survey:card",
+                   "survey:scheduler", "survey:option", "survey:base", "survey:log")
+#: A survey that exits 0 without a warning must have mapped the truth's anomaly to within
+#: this RMS on the grid's nodes (the short flight gives 1.5 nT; the fuzz's --ridge 0 gave 31).
+PLAUSIBLE_GRID_RMS_NT = 10.0
+#: ... and an improvement ratio in this range (a compensation that removed the reading
+#: itself gave 1.7e10).
+PLAUSIBLE_IR = (1.5, 1000.0)
+
+
+def make_survey_base(folder):
+    """The short survey flight's log, truth and base station in ``folder/survey``; facts:
+    the index of a cesium reading in the middle of the calibration box."""
+    import tomllib
+    from maglog.calib.logparse import parse_log
+    from maglog.calib.survey import cesium_times
+    from maglog.sim.stimulus.config import default_scenario_path, scenario_from_dict
+    data = tomllib.loads(default_scenario_path().with_name("survey.toml").read_text())
+    data["flight"]["survey"].update({"legs": 4, "leg_length_m": 200.0, "tie_lines": 2})
+    stimulus = scenario_from_dict(data, source="short-survey.toml").build()
+    target = Path(folder) / "survey"
+    target.mkdir()
+    stimulus.write_truth(target)
+    log = b"".join(stimulus.system.recorded_frames())
+    (target / "LOG00001.TXT").write_bytes(log)
+    truth = json.loads((target / "truth.json").read_text())
+    phase = next(p for p in truth["flight"]["phases"] if p["name"] == "calibration")
+    day = truth["timestamp"][11:19]
+    offset = sum(int(x) * f for x, f in zip(day.split(":"), (3600, 60, 1)))
+    times = cesium_times(parse_log(log)).t
+    box = np.flatnonzero((times > offset + phase["start_s"] + 5)
+                         & (times < offset + phase["end_s"] - 5))
+    return {"box_reading": int(box[len(box) // 2])}
+
+
+def _cesium_values(log, edit):
+    """The log with cesium reading ``k`` (nT) replaced by ``edit(k, value)``."""
+    return _rewrite(log, "cesium", lambda k, f: [f" {edit(k, float(f[0])):09.3f}", f[1]])
+
+
+def _swap_positions(log):
+    def swap(k, f):
+        if not (f[2] and f[4]):
+            return f
+        lat = float(f[2][:2]) + float(f[2][2:]) / 60
+        lon = float(f[4][:3]) + float(f[4][3:]) / 60
+        return f[:2] + [f"{int(lon):02d}{(lon - int(lon)) * 60:08.5f}", f[3],
+                        f"{int(lat):03d}{(lat - int(lat)) * 60:08.5f}"] + f[5:]
+    return _rewrite(log, "gga", swap)
+
+
+def _shift_lines(truth, seconds):
+    for line in truth["survey"]["lines"]:
+        line["start_s"] += seconds
+        line["end_s"] += seconds
+
+
+def _survey_known(base, facts):
+    """The survey findings of issue 23, one input each: every survey run starts with them
+    (the first few, which end quickly, are the default suite's)."""
+    folder = base / "survey"
+    log = (folder / "LOG00001.TXT").read_bytes()
+    truth = json.loads((folder / "truth.json").read_text())
+    card = "{base}/survey/LOG00001.TXT"
+
+    def truth_file(edit):
+        value = json.loads(json.dumps(truth))
+        edit(value)
+        return json.dumps(value).encode()
+    spike = facts["box_reading"]
+    return [
+        ("survey:truth", "truth.json with survey null",
+         [card, "--truth", "{work}/truth.json"],
+         {"truth.json": truth_file(lambda t: t.update(survey=None))}),
+        ("survey:truth", "truth.json without origin", [card, "--truth", "{work}/truth.json"],
+         {"truth.json": truth_file(lambda t: t["survey"].pop("origin"))}),
+        ("survey:option", "--ridge 0", [card, "--ridge", "0"], {}),
+        ("survey:scheduler", "--scheduler inproc://x", [card, "--scheduler", "inproc://x"],
+         {}),
+        ("survey:base", "--base /dev/null", [card, "--base", "/dev/null"], {}),
+        ("survey:base", "--base a folder", [card, "--base", "{work}"], {}),
+        ("survey:option", "--ridge -0", [card, "--ridge", "-0"], {}),
+        ("survey:option", "--ridge 1e-300", [card, "--ridge", "1e-300"], {}),
+        ("survey:option", "--band 4.9,5", [card, "--band", "4.9,5"], {}),
+        ("survey:option", "--lag 5", [card, "--lag", "5"], {}),
+        ("survey:option", "--lag 10", [card, "--lag", "10"], {}),
+        ("survey:option", "--spacing 99999", [card, "--spacing", "99999"], {}),
+        ("survey:truth", "a truth of another flight (lines 300 s later)",
+         [card, "--truth", "{work}/truth.json"],
+         {"truth.json": truth_file(lambda t: _shift_lines(t, 300.0))}),
+        ("survey:log", "latitude and longitude swapped in every GGA",
+         ["{work}/LOG00001.TXT"], {"LOG00001.TXT": _swap_positions(log)}),
+        ("survey:log", "one cesium reading of 99,999.999 nT in the calibration box",
+         ["{work}/LOG00001.TXT"],
+         {"LOG00001.TXT": _cesium_values(log, lambda k, v: 99999.999 if k == spike else v)}),
+        ("survey:log", "cesium stuck at 48,400.000 nT", ["{work}/LOG00001.TXT"],
+         {"LOG00001.TXT": _cesium_values(log, lambda k, v: 48400.0)}),
+    ]
+
+
+#: Values a new user's truth.json holds where a number, list or table belongs.
+WEIRD_JSON = (None, "", "47.3", [], {}, True, -1, 0, 1e308, -1e308, "NaN", [1, 2], {"a": 1},
+              "x" * 5000, 10**30)
+TRUTH_KEYS = (("survey",), ("survey", "origin"), ("survey", "origin", "lat_deg"),
+              ("survey", "origin", "lon_deg"), ("survey", "origin", "ground_alt_m"),
+              ("survey", "dipoles"), ("survey", "dipoles", 0), ("survey", "dipoles", 0,
+                                                                "moment_ned_Am2"),
+              ("survey", "dipoles", 0, "depth_m"), ("survey", "igrf_site_ned_nT"),
+              ("survey", "diurnal"), ("survey", "diurnal", "pulsation_period_s"),
+              ("survey", "lines"), ("survey", "lines", 0), ("survey", "lines", 0, "start_s"),
+              ("survey", "lines", 0, "kind"), ("timestamp",), ("reference",),
+              ("reference", "cesium_noise_nT"))
+
+
+def _truth_case(truth, rng):
+    op = int(rng.integers(8))
+    if op < 4:                                   # one value replaced or removed
+        keys = TRUTH_KEYS[rng.integers(len(TRUTH_KEYS))]
+        value = json.loads(json.dumps(truth))
+        parent = value
+        for key in keys[:-1]:
+            parent = parent[key]
+        if rng.random() < 0.25:
+            del parent[keys[-1]]
+            return json.dumps(value).encode(), f"truth without {'.'.join(map(str, keys))}"
+        weird = WEIRD_JSON[rng.integers(len(WEIRD_JSON))]
+        parent[keys[-1]] = weird
+        text = json.dumps(value)
+        if weird == "NaN":
+            text = text.replace('"NaN"', "NaN")
+        return text.encode(), f"truth {'.'.join(map(str, keys))} = {str(weird)[:20]!r}"
+    if op == 4:
+        what = ("", "{", "[1, 2]", "null", '"survey"', "\xff\xfe", "{\"survey\": {}}",
+                "{\"survey\": 1}", "[" * 100000)[rng.integers(9)]
+        return what.encode("utf-8", "surrogateescape"), f"truth.json is {what[:20]!r}"
+    if op == 5:
+        value = json.loads(json.dumps(truth))
+        seconds = float((-3600.0, -300.0, 300.0, 86400.0)[rng.integers(4)])
+        _shift_lines(value, seconds)
+        return json.dumps(value).encode(), f"the truth's lines {seconds:+g} s"
+    if op == 6:
+        value = json.loads(json.dumps(truth))
+        stamp = ("2026-06-02T10:00:00+00:00", "2025-06-01T10:00:00+00:00",
+                 "2026-06-01T10:00:00", "2026-06-01T10:00:00+05:00", "10:00")[rng.integers(5)]
+        value["timestamp"] = stamp
+        return json.dumps(value).encode(), f"the truth's timestamp {stamp!r}"
+    value = json.loads(json.dumps(truth))
+    shift = float((0.02, 0.5, 90.0, -180.0)[rng.integers(4)])
+    value["survey"]["origin"]["lat_deg"] = max(-90.0, min(90.0, value["survey"]["origin"][
+        "lat_deg"] + shift))
+    return json.dumps(value).encode(), f"the truth's site {shift:+g} degrees north"
+
+
+def _base_case(base_csv, rng):
+    header, rows = base_csv.split(b"\n", 1)
+    rows = rows.splitlines(keepends=True)
+    options = [
+        (None, "missing"), (b"", "empty"), (header + b"\n", "header only"),
+        ("dir", "a folder"), ("/dev/null", "/dev/null"), ("/proc/version", "/proc/version"),
+        (rng.integers(0, 256, size=4000, dtype=np.uint8).tobytes(), "binary"),
+        (b"time,field\n" + b"".join(rows), "another header"),
+        (header + b"\n" + b"".join(rows[::-1]), "rows reversed"),
+        (header + b"\n" + b"".join(rows[:len(rows) // 3]), "cut short"),
+        (header + b"\n" + b"".join(rows[len(rows) // 3:]), "starting late"),
+        (header + b"\n" + b"".join(r.replace(b"Z,", b",") for r in rows), "no time zone"),
+        (header + b"\n" + b"".join(r.replace(b",", b";") for r in rows), "semicolons"),
+        (header + b"\n" + b"".join(r.replace(b"2026-06-01", b"2026-06-02") for r in rows),
+         "another day"),
+        (header + b"\n" + b"".join(rows[:200] + rows[260:]), "a 60-s gap"),
+        (header + b"\n" + b"".join(rows[:100]) + b"2026-06-01T10:00:40.000Z,nan\n"
+         + b"".join(rows[100:]), "a NaN row"),
+        (header + b"\n" + b"".join(r.split(b",")[0] + b",1e400\n" for r in rows), "inf"),
+        (header + b"\n" + b"".join(r.split(b",")[0] + b",48000.0\n" for r in rows), "constant"),
+        (header + b"\n" + b"".join(r.split(b",")[0] + b",4.8e-5\n" for r in rows), "in tesla"),
+        (header + b"\n" + b"9" * 5000 + b",48000\n", "5000 digits"),
+        (base_csv, "good"),
+    ]
+    return options[rng.integers(len(options))]
+
+
+SURVEY_OPTIONS = {
+    "--ridge": ("0", "-0", "1e-300", "1e-7", "1e-6", "1", "1e6", "2e6", "inf", "nan", "auto",
+                "AUTO", "", "x", "-1"),
+    "--band": ("4.9,5", "0.1,0.5", "0.01,0.02", "1,4", "0.05,4.5", "0.5,0.1", "0,1", "1,1",
+               "nan,1", "0.1", "0.1,0.2,0.3", "1e-300,1", "0.2,999", "-1,1", ""),
+    "--lag": ("5", "10", "-10", "10.0001", "0.25", "1.5", "-1.5", "nan", "inf", "", "x",
+              "1e-300", "0"),
+    "--box": ("10:00:20-10:00:25", "00:00:00-23:59:59", "10:01:00-10:00:00", "25:00:00-26:00:00",
+              "10:00:15-10:01:40", "x", "10:00-10:01", "10:00:20.5-10:01:44.9"),
+    "--spacing": ("0", "-5", "0.001", "99999", "100", "40", "10", "1e5", "nan", "x"),
+    "--grid": ("spline", "eqs", "kriging", ""),
+    "--level": ("0", "1", "2", "-1", "x"),
+    "--terms": ("16", "18", "17", "0", "x"),
+    "--max-base-gap": ("0", "0.001", "1e9", "86400", "nan", "-1", "x"),
+    "--seed": ("-1", "0", str(2**128), "x", "1.5"),
+    "--workers": ("0", "1", "257", "x"),
+    "--seeds": ("1-2", "4-1", "x", "1,2", "0-99999"),
+    "--scenario": ("nosuch", "{work}", "{base}/survey/truth.json"),
+}
+
+SCHEDULERS = ("inproc://x", "tcp://127.0.0.1:1", "tcp://127.0.0.1", "tcp://:8786", "x",
+              "", "tcp://127.0.0.1:99999", "http://127.0.0.1:8786", "ucx://127.0.0.1:8786",
+              "tcp://nonexistent.invalid:8786", "tcp://[::1]:1", "tcp://127.0.0.1:0",
+              "tcp://127.0.0.1:-1", "127.0.0.1:1", "tcp://" + "h" * 300 + ":1",
+              "tcp://127.0.0.1:1/x")
+
+
+def make_survey_case(index, seed, facts, number):
+    """Survey input ``number`` (counted from 0 among the survey inputs) of the run seeded
+    ``seed``, numbered ``index`` in the whole run."""
+    base = Path(facts["base"])
+    if "survey_known" not in facts:
+        facts["survey_known"] = _survey_known(base, facts["survey"])
+        folder = base / "survey"
+        facts["survey_files"] = {name: (folder / name).read_bytes()
+                                 for name in ("LOG00001.TXT", "truth.json", "base.csv")}
+    known = facts["survey_known"]
+    out = ["-o", "{work}/out"]
+    if number < len(known):
+        kind, detail, argv, files = known[number]
+        return Case(index, kind, detail, ["survey", *argv, *out], files, out="{work}/out")
+    rng = np.random.default_rng([seed, index, 23])
+    kind = SURVEY_SCHEDULE[number % len(SURVEY_SCHEDULE)]
+    original = facts["survey_files"]
+    card = "{base}/survey/LOG00001.TXT"
+    files, argv = {}, [card]
+    if kind == "survey:truth":
+        truth = json.loads(original["truth.json"])
+        files["truth.json"], detail = _truth_case(truth, rng)
+        argv += ["--truth", "{work}/truth.json", "--no-deinterf"]
+    elif kind == "survey:base":
+        content, what = _base_case(original["base.csv"], rng)
+        target = "{work}/base.csv"
+        if content == "dir":
+            files["base.csv/keep"] = b""
+        elif isinstance(content, str):
+            target = content
+        elif content is not None:
+            files["base.csv"] = content
+        argv += ["--base", target, "--no-deinterf"]
+        detail = f"--base: {what}"
+    elif kind == "survey:option":
+        name = sorted(SURVEY_OPTIONS)[rng.integers(len(SURVEY_OPTIONS))]
+        values = SURVEY_OPTIONS[name]
+        value = values[rng.integers(len(values))]
+        argv += [name, value, "--no-deinterf"]
+        detail = f"{name} {value[:40]!r}"
+        if name in ("--seeds", "--scenario"):
+            argv = ["--scenario", value if name == "--scenario" else "nosuch",
+                    *(["--seeds", value] if name == "--seeds" else [])]
+    elif kind == "survey:scheduler":
+        value = SCHEDULERS[rng.integers(len(SCHEDULERS))]
+        argv += ["--scheduler", value]
+        detail = f"--scheduler {value[:40]!r}"
+    elif kind == "survey:card":
+        choices = [("{work}/missing.img", "missing"), ("{work}", "a folder"),
+                   ("{work}/empty.img", "empty"), ("/dev/null", "/dev/null"),
+                   ("/proc/version", "/proc/version"), ("{base}/survey/base.csv", "a CSV"),
+                   ("{base}/survey/truth.json", "the truth"), ("{base}/uav.log",
+                                                                "a calibration log"),
+                   ("{work}/zeros.img", "1 GiB of zeros (sparse)"), ("", "empty name")]
+        path, what = choices[rng.integers(len(choices))]
+        files["empty.img"] = b""
+        if path.endswith("zeros.img"):
+            files["zeros.img"] = 1 << 30
+        argv = [path, "--no-deinterf"]
+        detail = f"card: {what}"
+    else:
+        mutate = (_mutate_field, _mutate_bytes, _mutate_lines, _mutate_values)[
+            rng.integers(4)]
+        files["LOG00001.TXT"], detail = mutate(original["LOG00001.TXT"], rng)
+        files["truth.json"] = original["truth.json"]
+        files["base.csv"] = original["base.csv"]
+        argv = ["{work}/LOG00001.TXT", "--no-deinterf"]
+    return Case(index, kind, detail, ["survey", *argv, *out], files, out="{work}/out")
+
+
+def _judge_survey(out):
+    """An exit 0 of ``maglog survey``: strict JSON and valid HTML, finite figures, and a
+    plausible result (against the truth, when there was one) or warnings saying why not."""
+    import html5lib
+
+    def refuse(name):
+        raise ValueError(f"{name} is not JSON")
+    try:
+        figures = json.loads((out / "survey.json").read_text(), parse_constant=refuse)
+    except (OSError, ValueError) as error:
+        return {"outcome": "nonsense", "reason": f"survey.json: {error}"[:200]}
+    try:
+        html5lib.HTMLParser(strict=True).parse((out / "report.html").read_bytes())
+    except Exception as error:            # html5lib's ParseError, or the file missing
+        return {"outcome": "nonsense", "reason": f"report.html: {error}"[:200]}
+    ours = next((v for k, v in figures.get("compensation", {}).items()
+                 if k.startswith("maglog TL")), {})
+    ratio = ours.get("improvement_ratio")
+    peak = figures.get("peak", {}).get("amplitude_nT")
+    rms = figures.get("truth", {}).get("grid_rms_nT")
+    warnings = figures.get("warnings") or []
+    plausible = (ratio is not None and PLAUSIBLE_IR[0] <= ratio <= PLAUSIBLE_IR[1]
+                 and peak is not None and math.isfinite(peak)
+                 and (rms is None or rms < PLAUSIBLE_GRID_RMS_NT))
+    if warnings:
+        return {"outcome": "warned", "reason": warnings[0][:200]}
+    if plausible:
+        return {"outcome": "ok", "reason": f"IR {ratio:.3g}, grid {rms} nT off the truth"}
+    return {"outcome": "nonsense", "reason": f"exit 0: IR {ratio}, peak {peak} nT, grid "
+                                             f"{rms} nT RMS off the truth, no warning"}
