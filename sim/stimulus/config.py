@@ -372,6 +372,14 @@ def _describe(value):
     return shorten(text)
 
 
+def _finite(number):
+    """A finite number, also as a float (an integer beyond 1.8e308 is not)."""
+    try:
+        return math.isfinite(float(number))
+    except OverflowError:
+        return False
+
+
 def _convert(source, where, name, key, value):
     """``value`` checked against ``key``; raises ScenarioError naming ``where`` and
     ``name``."""
@@ -382,7 +390,7 @@ def _convert(source, where, name, key, value):
     kind = key.kind
     if kind == "float":
         if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                or not math.isfinite(value):
+                or not _finite(value):
             raise fail("must be a finite number")
         value = float(value)
     elif kind == "int":
@@ -402,7 +410,7 @@ def _convert(source, where, name, key, value):
         value = value.astimezone(_dt.timezone.utc)
     elif kind == "floats":
         if not isinstance(value, list) or not value or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                isinstance(v, (int, float)) and not isinstance(v, bool) and _finite(v)
                 for v in value):
             raise fail("must be a non-empty list of finite numbers")
         value = [float(v) for v in value]

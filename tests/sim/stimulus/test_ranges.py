@@ -39,6 +39,10 @@ def _error(text, source="fuzz.toml"):
      "[[anomaly.dipole]] #1 moment_Am2 must be at most 1e+13"),
     ("[scenario]\nclk_freq_hz = 1e300\n", "[scenario] clk_freq_hz must be within"),
     ("[flight.survey]\nspeed_m_s = 1e-300\n", "[flight.survey] speed_m_s must be within"),
+    ("[diurnal]\namplitude_nT = 1" + "0" * 400 + "\n",
+     "[diurnal] amplitude_nT must be a finite number, not an integer of 1329 bits"),
+    ("[errors]\nmounting_deg = [0, 0, 1" + "0" * 400 + "]\n",
+     "[errors] mounting_deg must be a non-empty list of finite numbers"),
 ])
 def test_out_of_range_values_are_refused_when_read(text, where):
     assert where in _error(text)
