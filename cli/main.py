@@ -390,7 +390,10 @@ def _cmd_card_format(args):
         plan = format_image(path, args.size, cluster_bytes=args.cluster_size,
                             label=args.label, volume_id=args.volume_id)
     except FatError as error:
-        raise CliError(str(error)) from None
+        # The label it repeats cut short, as the parser's errors do.
+        import re
+        raise CliError(re.sub(r"'([^']{60})[^']+'", lambda m: f"'{m[1]}…'", str(error))) \
+            from None
     cluster = plan.sectors_per_cluster * 512
     for name, value in [
             ("image", f"{path} ({args.size:,} bytes, sparse)"),
