@@ -645,12 +645,31 @@ def calib_mutation(report):
     outcomes = list(report["counts"])
     rows = [[name] + [counts[o] for o in outcomes] for name, counts in
             sorted(report["by_class"].items())]
+    for part in ("calibrate", "survey"):
+        if f"{part}_counts" in report:
+            rows.append([f"**all {part}** ({report[f'{part}_inputs']:,})"]
+                        + [f"**{report[f'{part}_counts'][o]}**" for o in outcomes])
     rows.append(["**all**"] + [f"**{report['counts'][o]}**" for o in outcomes])
+    survey = (f", the {report['survey_inputs']:,} survey inputs {report['survey_seconds']:.0f} s "
+              f"of worker time" if "survey_inputs" in report else "")
     return table(["class"] + outcomes, rows, "l" + "r" * len(outcomes)) + [
         "", f"{report['inputs']:,} inputs (seed {report['seed']}, card images "
             f"{'built' if report['images'] else 'not built: no FAT tools'}, "
-            f"at most {report['time_limit_s']} s an input) in {report['seconds']:.0f} s: "
-            f"{report['failures_total']} tracebacks, hangs or nonsense results."]
+            f"at most {report['time_limit_s']} s an input) in {report['seconds']:.0f} s"
+            f"{survey}: {report['failures_total']} tracebacks, hangs or nonsense results."]
+
+
+def surfaces_mutation(report):
+    outcomes = list(report["counts"])
+    rows = [[name] + [counts[o] for o in outcomes] for name, counts in
+            sorted(report["by_class"].items())]
+    rows.append(["**all**"] + [f"**{report['counts'][o]}**" for o in outcomes])
+    return table(["class"] + outcomes, rows, "l" + "r" * len(outcomes)) + [
+        "", f"{report['inputs']:,} inputs (seed {report['seed']}, scenarios run with "
+            f"--max-seconds {report['max_seconds']}, at most {report['time_limit_s']} s and "
+            f"{report['memory_limit_bytes'] / 2**30:.0f} GiB an input) in "
+            f"{report['seconds']:.0f} s: {report['failures_total']} tracebacks, hangs, "
+            f"out-of-memory exits or nonsense results."]
 
 
 
@@ -1097,6 +1116,7 @@ BLOCKS = {
     "calib-heading": ("bench/results/calib.json", calib_heading),
     "calib-lm": ("bench/results/calib_lm.json", calib_lm),
     "calib-mutation": ("bench/results/calib_mutation.json", calib_mutation),
+    "surfaces-mutation": ("bench/results/surfaces_mutation.json", surfaces_mutation),
     "allan-paper-c": ("bench/results/allan_paper_c.json", allan_paper_c),
     "calib-heldout": ("bench/results/calib_heldout.json", calib_heldout),
     "calib-heldout-systematic": ("bench/results/calib_heldout.json",
