@@ -17,6 +17,7 @@ from pathlib import Path
 
 from ..hw.arch import frames as arch_frames
 from ..hw.arch import uart as arch_uart
+from .run import _duration
 
 
 __all__ = ["main"]
@@ -49,15 +50,6 @@ class _Parser(argparse.ArgumentParser):
         import re
         message = re.sub(r"'([^']{60})[^']+'", lambda m: f"'{m[1]}…'", message)
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def _duration(seconds):
-    """A rough duration in the unit that reads best."""
-    if seconds >= 3600:
-        return f"{seconds / 3600:.3g} h"
-    if seconds >= 60:
-        return f"{seconds / 60:.3g} min"
-    return f"{max(seconds, 1):.0f} s"
 
 
 def _progress(text):

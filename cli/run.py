@@ -51,6 +51,7 @@ def _say(text):
 
 
 def _duration(seconds):
+    """A rough duration in the unit that reads best."""
     if seconds >= 3600:
         return f"{seconds / 3600:.3g} h"
     if seconds >= 60:

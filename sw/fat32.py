@@ -907,13 +907,8 @@ class Volume:
 
     async def _root_slots(self):
         """Yield ``(lba, index, entry)`` for each directory slot of the root, in order."""
-        for cluster in await self._chain(self.layout.root_cluster):
-            lba = self.layout.cluster_lba(cluster)
-            for sector in range(self.layout.sectors_per_cluster):
-                data = await self.device.read_block(lba + sector)
-                for index in range(arch.DIR_ENTRIES_PER_SECTOR):
-                    offset = index * arch.DIR_ENTRY_BYTES
-                    yield lba + sector, index, data[offset:offset + arch.DIR_ENTRY_BYTES]
+        async for slot in self._slots_of(await self._chain(self.layout.root_cluster)):
+            yield slot
 
     async def _scan_root(self):
         """The highest LOG file number in the root (0: none), the first free slot at the
