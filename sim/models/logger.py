@@ -379,6 +379,14 @@ class LoggerModel(SocPeripherals):
         self._schedule(self._cycles(at), self._button_input, 1, hardware=False)
         self._schedule(self._cycles(at + hold), self._button_input, 0, hardware=False)
 
+    def play(self, scenario):
+        """Feed a :class:`~maglog.sim.stimulus.system.SystemScenario`'s bursts (each at its
+        own rate) and schedule its button presses."""
+        for burst in scenario.bursts:
+            self.feed(burst.channel, burst.data, start=burst.start, baud=burst.baud)
+        for press in scenario.presses:
+            self.press_button(press, hold=scenario.hold)
+
     def cut_power(self, after_blocks=None, at=None):
         """Cut the power after the card has stored ``after_blocks`` more blocks, or at
         ``at`` seconds, whichever comes first; the next bus access raises PowerCut."""

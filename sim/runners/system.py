@@ -144,10 +144,7 @@ def _run_model(scenario, firmware, image, *, card_seed, card_options, busy_spike
             now = model.now_s
             return base() + sum(extra for start, end, extra in spikes if start <= now < end)
         model.card.busy_s = busy_s
-    for burst in scenario.bursts:
-        model.feed(burst.channel, burst.data, start=burst.start, baud=burst.baud)
-    for press in scenario.presses:
-        model.press_button(press, hold=scenario.hold)
+    model.play(scenario)
     start = time.perf_counter()
     run = model.run(lambda bus: firmware(bus, model.memory_map, scenario.clk_freq),
                     until=scenario.until)

@@ -43,10 +43,7 @@ def model_of(scenario, card_path, **options):
     model = LoggerModel(CardImage.load(card_path), clk_freq=scenario.clk_freq,
                         channels=scenario.channels, debounce_s=scenario.debounce_s,
                         **options)
-    for burst in scenario.bursts:
-        model.feed(burst.channel, burst.data, start=burst.start)
-    for press in scenario.presses:
-        model.press_button(press, hold=scenario.hold)
+    model.play(scenario)
     return model
 
 

@@ -84,10 +84,7 @@ def test_power_returns_the_dirty_card_is_repaired_before_it_is_closed_clean(tmp_
     card = TracingImage.load(blank)
     model = LoggerModel(card, clk_freq=first.clk_freq, channels=first.channels,
                         debounce_s=first.debounce_s)
-    for burst in first.bursts:
-        model.feed(burst.channel, burst.data, start=burst.start)
-    for press in first.presses:
-        model.press_button(press, hold=first.hold)
+    model.play(first)
     start, _ = firmware(model)
     model.run(start, until=first.until)
     # Cut just after a FAT write of a flush (FAT 1: the FATs differ, FAT 2: the chain is

@@ -260,10 +260,7 @@ class Reference:
 def model_of(scenario, card):
     model = LoggerModel(card, clk_freq=scenario.clk_freq, channels=scenario.channels,
                         debounce_s=scenario.debounce_s)
-    for burst in scenario.bursts:
-        model.feed(burst.channel, burst.data, start=burst.start)
-    for press in scenario.presses:
-        model.press_button(press, hold=scenario.hold)
+    model.play(scenario)
     return model
 
 

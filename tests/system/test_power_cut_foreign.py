@@ -204,10 +204,7 @@ def record(card, scene, cut=None, mounted=None):
     blocks stored when the first mount ended."""
     model = LoggerModel(card, clk_freq=scene.clk_freq, channels=scene.channels,
                         debounce_s=scene.debounce_s)
-    for burst in scene.bursts:
-        model.feed(burst.channel, burst.data, start=burst.start)
-    for press in scene.presses:
-        model.press_button(press, hold=scene.hold)
+    model.play(scene)
     if cut is not None:
         model.cut_power(after_blocks=cut)
     apps = []
