@@ -81,9 +81,12 @@ PRIOR_STRENGTH = 1.0
 PRIOR_ERROR_K = 0.1
 #: ... and the offset by this share of the field (paper A's Table 1: 3.5 %).
 PRIOR_ERROR_C = 0.05
-#: A parameter such an error could move by more than this many of its own standard
-#: deviations is reported as held (no uncertainty): its value is the prior's.
-HELD_BIAS = 0.5
+#: A parameter is reported as held (its value the prior's, no uncertainty) when at least
+#: this share of it lies along the held directions (in the dilution's units: the squared
+#: component of its unit vector on them). A parameter that only takes a small part in a
+#: held combination is fitted by the data: its uncertainty then includes what the prior's
+#: plausible error moves it by.
+HELD_SHARE = 0.25
 
 
 @dataclass
@@ -245,7 +248,9 @@ def _from_unit(q, shift, scale):
 
 def _linear_start(s, scale_guess):
     """Parameters from the linear solution of the moment problem (ten free coefficients,
-    the relation between them not enforced); the isotropic start when it is no ellipsoid."""
+    the relation between them not enforced); None when it is no ellipsoid. (It was the
+    isotropic start about the origin of ``s``'s coordinates, which for the centred moments
+    of :func:`fit_eiv` put the centre on the samples' mean: no start at all.)"""
     a, g = s[:10, :10], s[:10, 10]
     try:
         t = np.linalg.lstsq(a, g, rcond=1e-14)[0]
@@ -255,7 +260,7 @@ def _linear_start(s, scale_guess):
         c = np.linalg.solve(k.T, -t[6:9] / 2)       # K^T c = -theta[6:9] / 2
         return np.array([k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2], k[2, 2], *c])
     except np.linalg.LinAlgError:
-        return np.array([scale_guess, 0, 0, scale_guess, 0, scale_guess, 0, 0, 0])
+        return None
 
 
 def _root(s):
@@ -264,23 +269,64 @@ def _root(s):
     return np.sqrt(np.clip(values, 0, None))[:, None] * vectors.T
 
 
+#: K's diagonal in the parameter vector (k11, k22, k33).
+DIAGONAL = (0, 3, 5)
+
+
+def canonical(p):
+    """The same model with K's diagonal positive: |K b - c| is unchanged when a row of K
+    and the matching entry of c change sign together (D K, D c with D = diag(+-1)), so
+    each row whose diagonal element is negative is flipped. A zero diagonal element has
+    no such twin (it is the collapsed model): ``ValueError``."""
+    p = np.array(p, dtype=float)
+    diag = p[list(DIAGONAL)]
+    if not np.all(np.isfinite(diag)) or np.any(diag == 0):
+        raise ValueError(f"K's diagonal must be finite and non-zero, not {diag.tolist()}")
+    rows = ((0, 1, 2, 6), (3, 4, 7), (5, 8))
+    for d, row in zip(diag, rows):
+        if d < 0:
+            p[list(row)] *= -1
+    return p
+
+
+def to_log(q):
+    """Solver coordinates: K's diagonal as its logarithm (so no step of any solver can
+    make it zero or negative), the other parameters as they are."""
+    z = np.array(q, dtype=float)
+    z[list(DIAGONAL)] = np.log(z[list(DIAGONAL)])
+    return z
+
+
+def from_log(z):
+    q = np.array(z, dtype=float)
+    q[list(DIAGONAL)] = np.exp(q[list(DIAGONAL)])
+    return q
+
+
 def _gauss_newton(q, root, prior=None, *, iterations=None):
     """Levenberg-Marquardt on the 11 residuals ``root @ [theta(q), -1]`` (plus prior rows
-    ``A q - target``). Returns (q, iterations, converged)."""
-    def residual(x):
+    ``A q - target``). K's diagonal is stepped as its logarithm: it stays positive by
+    construction (a start with a negative diagonal is first replaced by its twin,
+    :func:`canonical`). Returns (q, iterations, converged)."""
+    def residual(z):
+        x = from_log(z)
         e = root @ np.append(theta(x), -1.0)
         return e if prior is None else np.concatenate([e, prior[0] @ x - prior[1]])
 
-    def jacobian(x):
-        j = root[:, :10] @ theta_jacobian(x)
-        return j if prior is None else np.vstack([j, prior[0]])
+    def jacobian(z):
+        x = from_log(z)
+        chain = np.ones(len(x))
+        chain[list(DIAGONAL)] = x[list(DIAGONAL)]        # d exp(l) / dl
+        j = root[:, :10] @ theta_jacobian(x) * chain[None, :]
+        return j if prior is None else np.vstack([j, prior[0] * chain[None, :]])
 
     iterations = MAX_ITERATIONS if iterations is None else iterations
-    e = residual(q)
+    z = to_log(canonical(q))
+    e = residual(z)
     cost = e @ e
     damping = 1e-6
     for it in range(1, iterations + 1):
-        j = jacobian(q)
+        j = jacobian(z)
         a = j.T @ j
         g = j.T @ e
         d = np.diag(a).copy()
@@ -289,22 +335,27 @@ def _gauss_newton(q, root, prior=None, *, iterations=None):
             try:
                 step = np.linalg.solve(a + damping * np.diag(d), -g)
             except np.linalg.LinAlgError:
-                step = np.zeros_like(q)
-            trial = q + step
-            e_trial = residual(trial)
+                step = np.zeros_like(z)
+            trial = z + step
+            with np.errstate(over="ignore", invalid="ignore"):
+                diagonal = np.exp(trial[list(DIAGONAL)])
+                e_trial = residual(trial)
             c_trial = e_trial @ e_trial
-            if np.isfinite(c_trial) and c_trial <= cost:
+            # A diagonal element that the exponential rounds to zero or infinity is no
+            # model (the collapse K -> 0 is approached, never reached).
+            if (np.isfinite(c_trial) and c_trial <= cost
+                    and np.all((diagonal > 0) & np.isfinite(diagonal))):
                 break
             damping *= 10
             if damping > 1e12:
-                return q, it, True          # no descent left: at the minimum
-        q, e, change = trial, e_trial, cost - c_trial
+                return from_log(z), it, True    # no descent left: at the minimum
+        z, e, change = trial, e_trial, cost - c_trial
         cost = c_trial
         damping = max(damping / 10, 1e-12)
         if change <= 1e-15 * max(cost, 1e-300) or np.max(np.abs(step)) <= 1e-13 * (
-                1 + np.max(np.abs(q))):
-            return q, it, True
-    return q, iterations, False
+                1 + np.max(np.abs(z))):
+            return from_log(z), it, True
+    return from_log(z), iterations, False
 
 
 @numba.njit(cache=True)
@@ -515,18 +566,24 @@ def _best_start(given, root, s, target, count, shift, field_nt, scale_guess):
     """Every plausible start (the given one, the linear solution, the isotropic one)
     polished; the best plausible end wins: the algebraic objective has a collapsed minimum
     (K -> 0) that a start far off may slide into. Returns (q, iterations, converged)."""
+    def plausible(q):
+        # Judged on the reported parameters (c in the field's units), not the centred ones:
+        # a survey flight's mean vector is most of the field, so its centred offset is too.
+        x = _from_unit(q, shift, field_nt)
+        return _plausible(np.r_[x[:6], x[6:9] / field_nt], scale_guess)
+
     candidates = [target.copy()]
     linear = _linear_start(s, scale_guess)
-    if _plausible(linear, scale_guess):
+    if linear is not None and plausible(linear):
         candidates.insert(0, linear)
-    if given is not None and _plausible(given, scale_guess):
+    if given is not None and plausible(given):
         candidates.insert(0, given)
     ends, nit = [], 0
     for candidate in candidates:
         _, prior = _weak_prior(root, candidate, target, count, shift, field_nt)
         end, it, ok = _gauss_newton(candidate, root, prior)
         nit += it
-        ends.append((not _plausible(end, scale_guess), objective(end, s), end, ok))
+        ends.append((not plausible(end), objective(end, s), end, ok))
     _, _, q, converged = min(ends, key=lambda item: item[:2])
     return q, nit, converged
 
@@ -558,14 +615,29 @@ def _unit_jacobian(shift, field_nt):
     return d
 
 
+def held_directions(rows, field_nt):
+    """The held directions as unit vectors in the dilution's units (K's entries times the
+    field, c in nT), largest component positive: (m, 9)."""
+    if rows is None or len(rows) == 0:
+        return np.zeros((0, 9))
+    units = np.array([field_nt] * 6 + [1.0] * 3)
+    v = np.asarray(rows, float) / units[None, :]
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    signs = np.sign(v[np.arange(len(v)), np.argmax(np.abs(v), axis=1)])
+    return v * signs[:, None]
+
+
 def _sandwich(info, rows, field_nt):
-    """Covariance of the parameters (H^-1 B H^-1: H the information of the field's gradient,
-    B the spread of the per-sample scores, gradient times residual), within the directions
-    the data determine when a prior holds others (``rows``: the held directions, in the
-    reported parameters); and which parameters the prior holds: those a plausible error of
-    the isotropic start (K's entries by :data:`PRIOR_ERROR_K`, c by
-    :data:`PRIOR_ERROR_C` of the field) could move by more than :data:`HELD_BIAS` of their
-    own standard deviation."""
+    """Covariance of the parameters and which of them the prior holds.
+
+    The data's part: H^-1 B H^-1 (H the information of the field's gradient, B the spread
+    of the per-sample scores, gradient times residual), within the directions the data
+    determine when a prior holds others (``rows``: the held directions, in the reported
+    parameters). The prior's part: the constrained estimate moves by (I - basis inner
+    basis^T H) times the isotropic start's error, which is plausibly K's entries by
+    :data:`PRIOR_ERROR_K` and c by :data:`PRIOR_ERROR_C` of the field (one standard
+    deviation); that spread is added. A parameter is held when :data:`HELD_SHARE` of it or
+    more lies along the held directions: the data cannot move it on its own."""
     h, spread = info.h, info.spread
     if rows is None:
         basis = np.eye(9)
@@ -579,10 +651,8 @@ def _sandwich(info, rows, field_nt):
     covariance = basis @ inner @ (basis.T @ spread @ basis) @ inner @ basis.T
     if rows is None:
         return covariance, np.zeros(9, bool)
-    # How far the prior's error reaches into each parameter: the constrained estimate
-    # moves by (I - basis inner basis^T h) times the error of the start.
     reach = np.eye(9) - basis @ inner @ basis.T @ h
     error = np.array([PRIOR_ERROR_K] * 6 + [PRIOR_ERROR_C * field_nt] * 3)
-    bias = np.abs(reach) @ error
-    held = bias > HELD_BIAS * np.sqrt(np.clip(np.diag(covariance), 0, None))
-    return covariance, held
+    covariance = covariance + (reach * error ** 2) @ reach.T
+    share = np.sum(held_directions(rows, field_nt) ** 2, axis=0)
+    return covariance, share >= HELD_SHARE

@@ -77,7 +77,10 @@ class ScalarResult:
     kept: np.ndarray = None    # bool per sample: fitted (not screened out, not rejected)
     robust_cut_nT: float = float("inf")   # Talwar's cut-off on the residual
     noise: dict = field(default_factory=dict)   # estimated noise: magnetometer, reference
-    covariance: np.ndarray = None  # the sandwich covariance
+    covariance: np.ndarray = None  # the sandwich covariance (plus the prior's spread)
+    #: The combinations of parameters the coverage leaves to the isotropic prior: unit
+    #: vectors in the dilution's units (K's entries times the field, c in nT), (m, 9).
+    held_directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 9)))
 
     @property
     def rejected(self):
@@ -111,6 +114,7 @@ class ScalarResult:
             [n for n, d in zip(PARAMETERS, self.determined) if not d],
             "held_to_prior": [] if self.held is None else
             [n for n, h in zip(PARAMETERS, self.held) if h],
+            "held_combinations": [combination(v) for v in self.held_directions],
             "samples_fitted": None if self.kept is None else int(self.kept.sum()),
             "rejected_by_robust_loss": self.rejected,
             "robust_cut_nT": self.robust_cut_nT,
@@ -264,7 +268,7 @@ def _swarm(b, r, lower, upper, *, kernel, seed, particles, iterations, pso_sampl
         root = eiv._root(s)
         ends = [(not eiv._plausible(best, scale), eiv.objective(best, s), best)]
         for start in (best, eiv._linear_start(s, scale)):
-            if eiv._plausible(start, scale):
+            if start is not None and eiv._plausible(start, scale):
                 end, steps, _ = eiv._gauss_newton(start, root)
                 nit += steps
                 inside = np.all((end > lower / units) & (end < upper / units))
@@ -379,15 +383,35 @@ def _calibrate(b, r, objective, method, seed, particles, iterations, kernel, pso
         start, nit = _swarm(b[allowed], r[allowed], lower, upper, kernel=kernel, seed=seed,
                             particles=particles, iterations=iterations,
                             pso_samples=pso_samples)
+    used = objective
     if objective == "eiv":
         result = _fit_eiv(b, r, start, keep, robust, reference_noise)
+        low = _collapsing(result.x, lower)
+        if low:
+            # The algebraic objective's trivial minimum (K -> 0, |c| = r) is the lowest when
+            # the reference hardly varies and the model leaves a large misfit: the bounded
+            # fit of the paper objective cannot reach it.
+            nit += result.nit
+            result = _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver,
+                                reference_noise)
+            used = "paper"
+            result.warnings.insert(0, (
+                f"the errors-in-variables fit slid towards the trivial solution (K's "
+                f"diagonal {', '.join(low)}, below {DIAGONAL_RANGE[0]:g} times the data's "
+                "scale: K -> 0 with |c| = the reference fits a reference that hardly "
+                "varies): the paper objective's bounded fit is reported instead"))
     else:
         result = _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver,
                             reference_noise)
     result.nit += nit
-    result.objective = objective
+    result.objective = used
     _check_bounds(result, lower, upper)
     return result
+
+
+def _collapsing(x, lower):
+    """K's diagonal elements below the search box's floor, as "k11 0.047" (empty: none)."""
+    return [f"{PARAMETERS[i]} {x[i]:.3g}" for i in eiv.DIAGONAL if not x[i] > lower[i]]
 
 
 def _check_bounds(result, lower, upper):
@@ -410,7 +434,20 @@ def _names(mask):
     return [name for name, m in zip(PARAMETERS, mask) if m]
 
 
-def _coverage_warnings(dop, determined, held):
+def combination(direction, smallest=0.1):
+    """A held direction as text: "0.64 k33 + 0.6 c3 - 0.31 k22" (its components of at
+    least ``smallest``, largest first; K's entries in units of the field)."""
+    order = np.argsort(-np.abs(direction))
+    terms = [(direction[i], PARAMETERS[i]) for i in order if abs(direction[i]) >= smallest]
+    text = ""
+    for k, (value, name) in enumerate(terms):
+        sign = "-" if value < 0 else "+"
+        text += (f"{'-' if value < 0 else ''}" if k == 0 else f" {sign} ") + \
+            f"{abs(value):.2g} {name}"
+    return text
+
+
+def _coverage_warnings(dop, determined, held, directions=()):
     warnings = []
     weak = [n for n, d, h in zip(PARAMETERS, determined, held) if not d and not h]
     if weak:
@@ -420,10 +457,17 @@ def _coverage_warnings(dop, determined, held):
                         "each one's 1-sigma is that many times the noise / sqrt(N)); fitted "
                         "from the data with their large uncertainties: turn the sensor "
                         "further about its other axes to determine them")
-    if np.any(held):
-        warnings.append(f"the attitude coverage does not determine {', '.join(_names(held))} "
-                        "at all (a level flight never turns that axis against the field): "
-                        "held to the isotropic prior, no uncertainty given")
+    if len(directions):
+        combos = "; ".join(combination(v) for v in directions)
+        what = (f"{', '.join(_names(held))} mostly lie along it: held to the isotropic "
+                "prior, no uncertainty given" if np.any(held) else
+                "no parameter lies mostly along it")
+        warnings.append(f"the attitude coverage does not determine the combination "
+                        f"{combos} (K's entries in units of the field) at all (a level "
+                        "flight never turns that axis against the field): that combination "
+                        f"is held to the isotropic prior; {what}; the other parameters are "
+                        "fitted from the data, their uncertainties including what the "
+                        "prior's error can move them by")
     return warnings
 
 
@@ -437,7 +481,9 @@ def _fit_eiv(b, r, start, keep, robust, reference_noise):
     kept = fit.keep
     before = np.linalg.norm(b[kept], axis=1) - r[kept]
     cost = float(e[kept] @ e[kept])
-    warnings = _coverage_warnings(fit.dop, fit.determined, fit.held) + list(fit.warnings)
+    directions = eiv.held_directions(fit.weak, float(np.median(r[kept])))
+    warnings = _coverage_warnings(fit.dop, fit.determined, fit.held, directions) + \
+        list(fit.warnings)
     message = ("converged: adjusted least squares (errors in variables)" if fit.converged
                else "not converged: the adjusted least squares reached its iteration limit")
     if not fit.converged:
@@ -452,7 +498,7 @@ def _fit_eiv(b, r, start, keep, robust, reference_noise):
         at_bound=[], dop=fit.dop, determined=fit.determined, held=fit.held,
         kept=kept, robust_cut_nT=fit.scale_cut,
         noise={"magnetometer_nT": fit.sigma_m, "reference_nT": fit.sigma_r},
-        covariance=fit.covariance)
+        covariance=fit.covariance, held_directions=directions)
 
 
 def _robust_keep(e, allowed):
@@ -507,7 +553,8 @@ def _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver, reference
     dof = max(bk.shape[0] - len(PARAMETERS), 1)
     uncertainties = np.sqrt(np.clip(np.diag(covariance), 0, None))
     uncertainties = np.where(held, np.inf, uncertainties)
-    warnings = _coverage_warnings(dop, determined, held)
+    directions = eiv.held_directions(fallback, float(np.median(rk)))
+    warnings = _coverage_warnings(dop, determined, held, directions)
     converged = best.status > 0
     message = STATUS_MESSAGES.get(best.status, f"status {best.status}")
     if not converged:
@@ -526,7 +573,7 @@ def _fit_paper(b, r, start, keep, robust, lower, upper, scale, solver, reference
         status=best.status, solver=best.solver, at_bound=at_bound, dop=dop,
         determined=determined, held=held, kept=kept, robust_cut_nT=cut,
         noise={"magnetometer_nT": sigma, "reference_nT": sigma_r},
-        covariance=covariance)
+        covariance=covariance, held_directions=directions)
 
 
 def _constrained(best, b, r, lower, upper, identity, solver, nit):
