@@ -9,7 +9,6 @@ known attitude when one is given) → report.
 
 import dataclasses
 import datetime
-import html
 import json
 import math
 import numbers
@@ -910,19 +909,6 @@ PLOTS = ("figure7", "coverage", "residuals", "allan", "heading_error")
 #: The text files of a report.
 TEXT_FILES = ("report.md", "report.html", "parameters.json")
 
-_PAGE = """<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<title>{title}</title>
-<style>table{{border-collapse:collapse}}td,th{{border:1px solid #bbb;padding:2px 6px}}</style>
-</head>
-<body>
-{body}
-</body>
-</html>
-"""
-
 
 def report_files():
     """Every file name :func:`write_report` may write into its folder (and the only ones it
@@ -934,12 +920,8 @@ def _html(markdown_text, title):
     """The report's Markdown as a full HTML document (Python-Markdown, tables and fenced
     code). Raw HTML in the text (a log name, a bad line's bytes quoted in a message) is
     shown as text, never interpreted."""
-    import markdown
-    md = markdown.Markdown(extensions=["tables", "fenced_code"], output_format="html")
-    md.preprocessors.deregister("html_block")
-    md.inlinePatterns.deregister("html")
-    md.inlinePatterns.deregister("entity")
-    return _PAGE.format(title=html.escape(title), body=md.convert(markdown_text))
+    from .html import markdown_page
+    return markdown_page(markdown_text, title)
 
 
 def _discard(staged):
@@ -954,10 +936,8 @@ def _discard(staged):
 def _stage(staged, final):
     """A temporary file beside ``final`` to write into; moved over ``final`` when the whole
     report is written (see :func:`write_report`)."""
-    fd, temp = tempfile.mkstemp(dir=final.parent, prefix=f".{final.name}.", suffix=".tmp")
-    os.close(fd)
-    staged[final] = Path(temp)
-    return staged[final]
+    from .files import stage
+    return stage(staged, final)      # created with the user's umask, not mkstemp's 0600
 
 
 def _report_lines(run, summary, files, allan=None):

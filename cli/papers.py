@@ -1,4 +1,4 @@
-"""The three papers' headline results beside ours (../shared/PAPERS.md), for the report.
+"""The three papers' headline results beside ours, for the report (:data:`PAPERS` cites them).
 
 - Paper A (Li et al. 2018): Table 1, the estimated P and O, beside the scenario's truth and
   the run's recovered parameters read the same way; Figure 7 (raw magnitude, the cesium
@@ -35,8 +35,50 @@ from ..sim.stimulus.scenario import DEFAULT_ERRORS, ErrorModel, make_flight
 from .summary import recovered_kc
 
 
-__all__ = ["PAPER_A", "PAPER_B", "PAPER_C", "PapersResult", "paper_results",
-           "select_by_octant", "paper_a", "paper_b", "paper_c"]
+__all__ = ["PAPERS", "citation", "PAPER_A", "PAPER_B", "PAPER_C", "PapersResult",
+           "paper_results", "select_by_octant", "paper_a", "paper_b", "paper_c"]
+
+#: The three papers as the reports cite them. Paper A prints its reference on its first
+#: page. The copies of papers B and C the project holds begin at the authors' names and
+#: affiliations: their title, journal and year are not in them, so none is given here and
+#: the citation says what the paper is about instead of inventing them.
+PAPERS = {
+    "A": {"short": "Li et al. 2018",
+          "authors": "Li C.L., Wang S.C., Li T., Zhang Z.Y.",
+          "title": "UAV based regional geomagnetic field test and correction technology",
+          "venue": "Electronics Optics & Control 25(7):14–18", "year": 2018,
+          "doi": "10.3969/j.issn.1671-637X.2018.07.003",
+          "affiliation": "Rocket Force University of Engineering, Xi'an",
+          "subject": "a UAV's data logger (FPGA, SDRAM buffer, SD card, FAT32) and a "
+                     "particle-swarm calibration of a strapdown three-axis magnetometer "
+                     "against an optically pumped scalar magnetometer"},
+    "B": {"short": "Guan and Wang",
+          "authors": "Guan Q.P., Wang T.M.", "title": None, "venue": None, "year": None,
+          "doi": None,
+          "affiliation": "Department of Mechanical Engineering and Automation, Beihang "
+                         "University, Beijing",
+          "subject": "ellipsoid-fit calibration of a small UAV's magnetic compass, with a "
+                     "dynamic check of the calibration's progress by octant coverage"},
+    "C": {"short": "Li, Zhang and Yang",
+          "authors": "Li R., Zhang Y.F., Yang W.W.", "title": None, "venue": None,
+          "year": None, "doi": None,
+          "affiliation": "Huainan Vocational and Technical College, and Anhui University "
+                         "of Science and Technology, Huainan",
+          "subject": "LS-KF compensation of an electronic compass (a least-squares circle "
+                     "fit for the hard iron, then a scalar Kalman filter), judged by Allan "
+                     "variance"},
+}
+
+
+def citation(key):
+    """Paper ``key``'s (A, B or C) reference as one line of plain text."""
+    paper = PAPERS[key]
+    if paper["title"]:
+        text = (f"{paper['authors']} \u201c{paper['title']}.\u201d {paper['venue']}, "
+                f"{paper['year']}.")
+        return text + (f" doi:{paper['doi']}." if paper["doi"] else "")
+    return (f"{paper['authors']} ({paper['affiliation']}): {paper['subject']}. Title, "
+            "journal and year are not printed in the copy this project holds.")
 
 #: Paper A's Table 1 (P row by row, O in nT) and Figure 7's raw peak-to-peak.
 PAPER_A = {"P": [[1.0117, 0.0079, 0.0184], [0.0028, 1.0010, -0.0119],
@@ -117,12 +159,12 @@ def _nearest_rotation(m, target):
 
 def paper_a(run, truth, out_dir):
     """Table 1 and Figure 7 (see the module docstring). The scalar model recovers
-    ``A^-1 = U K`` only up to the rotation U (PAPERS.md, eq. 6-9): the sensor-frame offset
+    ``A^-1 = U K`` only up to the rotation U (paper A, eq. 6-9): the sensor-frame offset
     ``b = K^-1 c`` is fully determined, the matrix only as ``K^-1 U^T``; ours is shown with
     U = I (upper triangular, what calib reports as P) and with the U that brings it nearest
     the truth's A (U taken from the truth, said so)."""
     out = {"paper": PAPER_A}
-    lines = ["## Paper A: Table 1 and Figure 7", ""]
+    lines = [f"## Paper A ({PAPERS['A']['short']}): Table 1 and Figure 7", ""]
     if run is None:
         lines += ["Not computed: the calibration failed (see the summary).", ""]
         return out, lines, {}
@@ -316,7 +358,8 @@ def paper_b(truth, out_dir, *, seed=0, quick=False):
                        "unlimited_samples_error_deg": limit,
                        "fits": fits, "trials": trials, "claim_holds": holds})
     source = "the scenario's A, b" if "A" in errors else "the project's default error model"
-    lines = ["## Paper B: mean heading error against samples per octant (their Fig. 5)", "",
+    lines = [f"## Paper B ({PAPERS['B']['short']}): mean heading error against samples per "
+             "octant (their Fig. 5)", "",
              f"Flights made for it (sim.stimulus.scenario.make_flight, seed {seed}): samples "
              "taken by the paper's octant strategy (each octant about the running centroid "
              "takes at most n, fit when all eight are full) from a tumbling flight (full sphere, "
@@ -503,7 +546,7 @@ def paper_c(run, truth, out_dir, *, seed=0, quick=False):
         return f"{ch['mean']:+.1f} %{spread}{part}"
 
     paper = PAPER_C["change_percent"]
-    lines = ["## Paper C: Kalman filter and Allan deviation", "",
+    lines = [f"## Paper C ({PAPERS['C']['short']}): Kalman filter and Allan deviation", "",
              f"Series made for it ({seeds} × {minutes:g} min at {rate:g} Hz, seeds "
              f"{seed * 1000}..{seed * 1000 + seeds - 1}; calib.noise.simulate_noise): the "
              f"paper's \"before\" quantisation noise {truth_terms['quantisation']:g} and bias "
@@ -585,8 +628,10 @@ def paper_results(run, truth, out_dir, *, seed=0, quick=False):
     lines = ["# The papers' results beside ours", "",
              f"Seed {seed}; {'quick (small made-up scenarios)' if quick else 'full'} run. "
              "Paper A is computed on this run's data; papers B and C on scenarios made for "
-             "them (stated in each section). The papers' figures are from "
-             "../shared/PAPERS.md.", ""]
+             "them (stated in each section). The papers: "
+             + ", ".join(f"{key} ({paper['short']})" for key, paper in PAPERS.items())
+             + ", cited in full under References at the end; the figures quoted from them "
+             "are theirs.", ""]
     for name, (section, section_lines, section_plots) in (
             ("paper_a", paper_a(run, truth, out)),
             ("paper_b", paper_b(truth, out, seed=seed, quick=quick)),
@@ -594,6 +639,9 @@ def paper_results(run, truth, out_dir, *, seed=0, quick=False):
         data[name] = section
         lines += section_lines
         plots.update(section_plots)
+    data["citations"] = {key: {**PAPERS[key], "text": citation(key)} for key in PAPERS}
+    lines += ["## References", ""] + [f"- Paper {key}: {citation(key)}" for key in PAPERS]
+    lines.append("")
     markdown = out / "papers.md"
     markdown.write_text("\n".join(lines) + "\n", encoding="utf-8")
     result = PapersResult(markdown=markdown, json=out / "papers.json", plots=plots, data=data)

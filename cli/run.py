@@ -196,7 +196,13 @@ def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers
     (report / "summary.txt").write_text(summary.text + "\n")
     if "markdown" in paths:
         _link_papers(Path(paths["markdown"]), report / "papers.md")
-    summary.files = {"card": card, "report": paths.get("markdown", report / "papers.md"),
+    from .report_html import write_run_report        # the one page: verdicts, calibration,
+    try:                                             # papers, figures (from the JSONs)
+        page = write_run_report(report)
+    except OSError as error:
+        raise RunError(f"{report}: cannot write the report page: "
+                       f"{error.strerror or error}") from None
+    summary.files = {"card": card, "report": page, "markdown": paths.get("markdown"),
                      "papers": report / "papers.md", "summary": report / "summary.json"}
     return summary
 

@@ -50,6 +50,15 @@ missing=()
 command -v iverilog >/dev/null 2>&1 || missing+=(iverilog)
 command -v mkfs.fat >/dev/null 2>&1 || [ -x /usr/sbin/mkfs.fat ] || [ -x /sbin/mkfs.fat ] || missing+=(dosfstools)
 command -v mcopy >/dev/null 2>&1 || missing+=(mtools)
+# Chromium renders the HTML reports in tests/cli/test_report_html.py (skipped without it,
+# except under CI=true): installed when missing and root; otherwise only a note.
+if ! command -v chromium >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    missing+=(chromium)
+  else
+    echo "setup: note: no chromium; the HTML report's browser test will be skipped (Debian/Ubuntu: sudo apt-get install chromium)"
+  fi
+fi
 if [ ${#missing[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "setup: installing ${missing[*]} (apt-get install)"
