@@ -124,6 +124,10 @@ DIR_KANJI_E5 = 0x05                         # DIR_Name[0]: the name really start
 ATTR_LONG_NAME_MASK = 0x3F
 MAX_DIR_BYTES = 65536 * DIR_ENTRY_SIZE      # at most 65,536 entries in a directory
 NAME_ENCODING = "cp850"                     # dosfstools' and mtools' default OEM code page
+# A path is at most 260 characters where FAT volumes are written (Windows' MAX_PATH), so a
+# tree holds at most 130 levels of one-letter folders ("A/A/..."); deeper is a corrupt tree.
+MAX_PATH = 260
+MAX_DEPTH = MAX_PATH // 2
 
 
 class Attr(enum.IntFlag):
@@ -620,8 +624,9 @@ class Volume:
         if message not in self.warnings:
             self.warnings.append(message)
 
-    def _read_clusters(self, clusters, length, what):
-        """``length`` bytes from the start of ``clusters``, one slice per contiguous run."""
+    def _read_clusters(self, clusters, length, what, *, read=True):
+        """``length`` bytes from the start of ``clusters``, one slice per contiguous run
+        (``read=False``: only check that they lie in the image; returns None)."""
         size = self.cluster_size
         parts = []
         remaining = length
@@ -641,10 +646,11 @@ class Volume:
                     f"past the end of the image ({self._image.size} bytes, {missing} bytes "
                     f"missing); only the first {length - remaining + min(take, inside)} of "
                     f"{length} bytes are present", missing)
-            parts.append(self._image.read(offset, take, what))
+            if read:
+                parts.append(self._image.read(offset, take, what))
             remaining -= take
             i = j
-        return b"".join(parts)
+        return b"".join(parts) if read else None
 
     # -- directories --------------------------------------------------------------------
 
@@ -745,6 +751,41 @@ class Volume:
 
     def read(self, path):
         """The contents of a file, following its cluster chain."""
+        return self._file(path, read=True)
+
+    def check(self, path):
+        """Raise what :meth:`read` would raise for ``path`` (not a file, a broken or short
+        chain, clusters past the end of the image), without reading the file's data."""
+        self._file(path, read=False)
+
+    def walk(self, path="/"):
+        """``(path, entry)`` of everything under the directory ``path``, depth first in
+        directory order; ``path`` is relative to the root, ``/``-separated (``DATA/A.BIN``).
+        A directory that links back to one above it is a :class:`ChainError`."""
+        top = self._resolve(path)
+        if top is not None and not top.is_dir:
+            raise CardError(f"{path!r} is a file, not a directory")
+        prefix = "/".join(p for p in str(path).replace("\\", "/").split("/") if p)
+        start = self.boot.root_cluster if top is None else top.first_cluster
+        yield from self._walk(start, prefix, {start})
+
+    def _walk(self, cluster, prefix, above):
+        if len(above) > MAX_DEPTH:
+            raise CardError(f"directory /{prefix}: more than {MAX_DEPTH} levels deep (a path "
+                            f"on FAT is at most {MAX_PATH} characters)")
+        for entry in self._entries(cluster, "/" + prefix):
+            name = f"{prefix}/{entry.name}" if prefix else entry.name
+            yield name, entry
+            if entry.is_dir:
+                if entry.first_cluster == 0 or entry.first_cluster in above:
+                    raise ChainError(
+                        f"directory /{name} (entry at {_where(entry.offset)}) starts at "
+                        f"cluster {entry.first_cluster}, "
+                        + ("no chain" if entry.first_cluster == 0 else
+                           "a directory above it: a loop in the tree"))
+                yield from self._walk(entry.first_cluster, name, above | {entry.first_cluster})
+
+    def _file(self, path, *, read):
         entry = self._resolve(path)
         if entry is None or entry.is_dir:
             raise CardError(f"{path!r} is a directory, not a file")
@@ -759,7 +800,7 @@ class Volume:
             if size:
                 raise ChainError(f"{what}: size {size} bytes but first cluster 0 (no chain): "
                                  f"the chain is shorter than the directory size")
-            return b""
+            return b"" if read else None
         chain = self._chain(entry.first_cluster, what)
         if len(chain) < needed:
             raise ChainError(
@@ -769,7 +810,7 @@ class Volume:
         if len(chain) > needed:
             self._warn(f"{what}: the chain has {len(chain)} clusters, {len(chain) - needed} "
                        f"more than the {size} bytes need (lost space, not an error)")
-        return self._read_clusters(chain, size, what)
+        return self._read_clusters(chain, size, what, read=read)
 
     def log_files(self):
         """Names of the ``LOG*.TXT`` files of the root directory, sorted."""

@@ -409,19 +409,23 @@ def _cmd_calibrate(args):
     from ..calib.card import CardError
     from ..calib.pipeline import (CalibrationError, calibrate_card, check_output_dir,
                                   write_report)
-    card = Path(args.card)
-    if not card.exists():
-        raise CliError(f"{card}: no such file")
-    if card.is_dir():
-        raise CliError(f"{card}: is a folder, not a card image or log")
+    from .card import card_of
+    card = card_of(args.card)               # a run's folder: its card.img
+    attitude = args.attitude
+    beside = card.parent / "attitude.csv"   # a run's attitude, as maglog run uses it
+    from_beside = attitude is None and not args.no_attitude and beside.is_file()
+    if from_beside:
+        attitude = beside
     try:
         out = check_output_dir(args.out)    # before the fit: a bad --out is said at once
     except CalibrationError as error:
         raise CliError(str(error)) from None
     _progress(f"[1/3] reading {card}")
+    if from_beside:
+        print(f"attitude: {beside} (beside the card)")
     try:
         run = calibrate_card(card, ref=args.ref, method=args.method, seed=args.seed,
-                             attitude=args.attitude, objective=args.objective)
+                             attitude=attitude, objective=args.objective)
     except (CardError, CalibrationError) as error:
         raise CliError(str(error)) from None
     _progress(f"[2/3] {run.log_name}: {len(run.b)} samples calibrated ({run.method}, "
@@ -782,7 +786,8 @@ def _parser():
     register_build(hdl_commands)
     register_component(hdl_commands)
 
-    card = commands.add_parser("card", help="card images")
+    card = commands.add_parser("card", help="card images: format a blank one, list and "
+                                            "extract the files of one")
     card_commands = card.add_subparsers(dest="card_command", metavar="WHAT", required=True)
     card_format = card_commands.add_parser(
         "format", help="write a blank FAT32 card image, laid out as the SD Association's "
@@ -802,11 +807,14 @@ def _parser():
     card_format.add_argument("--force", action="store_true",
                              help="replace an existing file")
     card_format.set_defaults(func=_cmd_card_format)
+    from .card import register as register_card
+    register_card(card_commands)
 
     calibrate = commands.add_parser(
         "calibrate", help="calibrate the magnetometer from a card image or log file")
-    calibrate.add_argument("card", help="raw card image, FAT32 partition image, or a "
-                                        "plain LOG*.TXT")
+    calibrate.add_argument("card", help="raw card image, FAT32 partition image, a plain "
+                                        "LOG*.TXT, or a run's folder (maglog run -o DIR: "
+                                        "its card.img)")
     calibrate.add_argument("--ref", type=_reference_arg, default="cesium",
                            help="reference total field: cesium, igrf, or a value in nT "
                                 "(default: cesium)")
@@ -820,10 +828,14 @@ def _parser():
                                 "%(default)s)")
     calibrate.add_argument("--seed", type=_int_in(0, SEED_MAX), default=0,
                            help=f"PSO seed, 0 to {SEED_MAX} (default: 0)")
-    calibrate.add_argument("--attitude", metavar="CSV",
-                           help="known attitude (t,roll_deg,pitch_deg,heading_deg; t in s "
-                                "since 00:00 UTC of the log's date): tilt-compensates the "
-                                "headings and plots their error")
+    attitude = calibrate.add_mutually_exclusive_group()
+    attitude.add_argument("--attitude", metavar="CSV",
+                          help="known attitude (t,roll_deg,pitch_deg,heading_deg; t in s "
+                               "since 00:00 UTC of the log's date): tilt-compensates the "
+                               "headings and plots their error (default: attitude.csv "
+                               "beside the card, if any)")
+    attitude.add_argument("--no-attitude", action="store_true",
+                          help="no attitude, even if attitude.csv is beside the card")
     calibrate.add_argument("--out", default="build/calibration",
                            help="report folder (default: %(default)s)")
     calibrate.set_defaults(func=_cmd_calibrate)

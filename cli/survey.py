@@ -120,16 +120,13 @@ def _jobs(args, out):
         raise CliError("give at least one card image (or --scenario NAME --seeds N-M)")
     if args.seeds:
         raise CliError("--seeds goes with --scenario")
-    names = [Path(card).parent.name if Path(card).name == "card.img" else Path(card).stem
-             for card in args.cards]
+    from .card import RUN_CARD, card_of
+    cards = [card_of(card) for card in args.cards]      # a run's folder: its card.img
+    names = [card.resolve().parent.name if card.name == RUN_CARD else card.stem
+             for card in cards]
     if len(set(names)) != len(names):
         names = [f"{k + 1}-{name}" for k, name in enumerate(names)]
-    for card, name in zip(args.cards, names):
-        path = Path(card)
-        if not path.exists():
-            raise CliError(f"{path}: no such file")
-        if path.is_dir():
-            raise CliError(f"{path}: is a folder, not a card image or log")
+    for path, name in zip(cards, names):
         values = dict(options)
         base = _beside(path, "base.csv", args.base, args.no_base)
         values["base_station"] = None if base is None else str(Path(base).resolve())
@@ -209,8 +206,9 @@ def register(commands):
         "survey", help="card images to a compensated, levelled, gridded anomaly map and "
                        "report (many at once on Dask)")
     survey.add_argument("cards", nargs="*", metavar="CARD",
-                        help="card images (or partition images, or plain logs); "
-                             "truth.json and base.csv beside a card are used")
+                        help="card images (or partition images, plain logs, or a run's "
+                             "folders: their card.img); truth.json and base.csv beside a "
+                             "card are used")
     survey.add_argument("-o", "--output", required=True, metavar="DIR",
                         help="the products' folder (one per job under it for several)")
     survey.add_argument("--scenario", metavar="NAME|TOML", default=None,

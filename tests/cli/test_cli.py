@@ -188,7 +188,9 @@ def test_output_folder_the_os_refuses(command, tmp_path, capsys):
 
 def test_unreadable_card_is_one_line(tmp_path, capsys):
     assert main(["calibrate", str(tmp_path)]) == 1
-    assert capsys.readouterr().err == f"maglog: error: {tmp_path}: is a folder, not a card image or log\n"
+    assert capsys.readouterr().err == (f"maglog: error: {tmp_path}: is a folder without a "
+                                       f"card.img (looked for {tmp_path / 'card.img'}, as "
+                                       f"maglog run -o and maglog simulate -o leave it)\n")
     assert main(["calibrate", str(tmp_path / "none.img")]) == 1
     assert "no such file" in capsys.readouterr().err
 
