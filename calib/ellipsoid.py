@@ -1,4 +1,4 @@
-"""Ellipsoid fitting with octant-coverage gating.
+"""Ellipsoid fitting, gated on what the flight determines.
 
 Samples of a constant field seen from many attitudes lie on an ellipsoid (soft and hard
 iron); fitting it gives the centre (hard iron) and the matrix that maps it back onto a
@@ -8,18 +8,30 @@ Two fits of the quadric a x^2 + b y^2 + c z^2 + 2f yz + 2g xz + 2h xy + 2p x + 2
 + d = 0: the nine-parameter algebraic least-squares fit (d = -1), and the constrained fit
 of Li and Griffiths (2004) that always returns an ellipsoid (4J - I^2 = 1).
 
+The fit's own uncertainty: the geometric residual ``|W (b - centre)| - field`` linearised
+about the fit (W's six entries and the centre), its covariance scaled by the residual's
+variance, carried to the scalar model's canonical form (K = the upper-triangular factor of
+W with a positive diagonal, c = K centre) so that its parameters are named and judged as
+the scalar fit's are (k11..c3, :mod:`.coverage`).
+
 Coverage gate, two kinds:
 
-- ``gate="centre"`` (the default): the fit is made, then the calibrated directions
-  ``W (b - centre)`` are counted in the eight octants about the fitted centre; the fit is
-  refused (``success`` False, the fitted centre and W kept for inspection) unless every
-  octant holds ``min_per_octant`` samples: a fit from one side of the ellipsoid leaves the
-  offset along that side undetermined.
+- ``gate="determined"`` (the default): the fit is made, and refused (``success`` False, the
+  fitted centre and W kept for inspection) unless :func:`maglog.calib.coverage.determine`
+  finds every parameter determined: its 1-sigma in nT of field within the noise of one
+  sample (the fit's residual RMS) or the bound given. A flight that fits and pins every
+  parameter down is accepted whatever octants its samples fill; one that fits as well but
+  leaves the offset along an axis free (a level flight, a UAV's +-30 deg over too few
+  samples) is refused, and the message names the parameters and their 1-sigma.
 - ``gate="paper"``: paper B's, samples counted in the octants about the running centroid
   of the raw samples, and no fit attempted before all eight hold ``min_per_octant``. On a
   UAV pattern the centroid lies inside the covered cap, so all eight fill although the
   field never pointed into half of the sphere (calib.coverage explains); kept as what the
   paper did.
+
+The octants of the calibrated directions about the fitted centre are counted in every
+result (``coverage``), as information: a UAV's +-30 deg reaches four of them and may
+still determine every parameter when flown long enough.
 
 Samples that cannot determine any fit (a stuck axis, fewer than ten distinct vectors,
 values no magnetometer gives) are refused before either gate with a ``ValueError`` that
@@ -34,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._samples import MAX_FIELD_NT, check_samples
+from .coverage import check_bound, determine
 
 
 __all__ = ["Coverage", "octant_coverage", "EllipsoidResult", "fit_ellipsoid"]
@@ -84,6 +97,13 @@ class EllipsoidResult:
     method: str
     warnings: list = field(default_factory=list)
     paper_coverage: Coverage = None     # paper B's octants about the running centroid
+    field_nt: float = float("nan")      # the sphere's radius the fit was made for
+    K: np.ndarray = None        # canonical form: upper triangular, positive diagonal
+    c: np.ndarray = None        # K centre, nT: calibrated = K b - c (up to a rotation)
+    x: np.ndarray = None        # k11, k12, k13, k22, k23, k33, c1, c2, c3
+    uncertainties: np.ndarray = None    # 1-sigma of x (K's dimensionless, c's nT)
+    noise_nT: float = float("nan")      # RMS of the geometric residual (as ``rms``)
+    determination: object = None        # calib.coverage.Determination
 
 
 def _design(b):
@@ -128,15 +148,74 @@ def _to_geometry(v, field_nt):
     return center, w, 1.0 / np.sqrt(values)
 
 
-GATES = ("centre", "paper")
+_UPPER = np.triu_indices(3)
 
 
-def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate="centre"):
+def _canonical(w, center):
+    """The scalar model's form of ``|W (b - centre)|``: K the upper-triangular factor of W
+    (W = Q K, K's diagonal positive) and c = K centre; as one vector k11..c3."""
+    q, r = np.linalg.qr(w)
+    k = r * np.where(np.diag(r) < 0, -1.0, 1.0)[:, None]
+    return np.concatenate([k[_UPPER], k @ center])
+
+
+def _uncertainties(b, w, center, field_nt):
+    """1-sigma of the canonical parameters (k11..c3) of the fit (W, centre): the geometric
+    residual linearised about it in (W's entries times the field, centre), its covariance
+    scaled by the residual's variance, carried through :func:`_canonical`. Infinite where
+    the samples leave a direction of the fit free."""
+    d = b - center
+    v = d @ w.T
+    norm = np.linalg.norm(v, axis=1)
+    u = v / norm[:, None]
+    e = norm - field_nt
+    jac = np.empty((len(b), 9))
+    for j, (p, q) in enumerate(zip(*_UPPER)):
+        jac[:, j] = (u[:, p] * d[:, q] + (u[:, q] * d[:, p] if p != q else 0.0)) / field_nt
+    jac[:, 6:] = -(u @ w)
+    variance = float(e @ e) / max(len(b) - 9, 1)
+    info = jac.T @ jac
+    scale = np.sqrt(np.diag(info))
+    if not np.all(scale > 0):
+        return np.full(9, np.inf)
+    try:
+        cov = np.linalg.inv(info / np.outer(scale, scale)) / np.outer(scale, scale)
+    except np.linalg.LinAlgError:
+        return np.full(9, np.inf)
+    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
+        return np.full(9, np.inf)
+    cov *= variance
+    # Carry to the canonical form: central differences of _canonical in (W F, centre).
+    p0 = np.concatenate([w[_UPPER] * field_nt, center])
+
+    def canonical(p):
+        m = np.zeros((3, 3))
+        m[_UPPER] = p[:6] / field_nt
+        m = m + np.triu(m, 1).T
+        return _canonical(m, p[6:])
+    grad = np.empty((9, 9))
+    for j in range(9):
+        h = 1e-6 * max(abs(p0[j]), 1.0)
+        up, down = p0.copy(), p0.copy()
+        up[j] += h
+        down[j] -= h
+        grad[:, j] = (canonical(up) - canonical(down)) / (2 * h)
+    out = np.diag(grad @ cov @ grad.T)
+    return np.where(np.isfinite(out) & (out >= 0), np.sqrt(np.abs(out)), np.inf)
+
+
+GATES = ("determined", "paper")
+
+
+def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate="determined",
+                  determined_nt=None):
     """Fit the samples' ellipsoid; ``field_nt`` is the field's magnitude (the sphere's
-    radius after calibration). ``gate``: "centre" (octants of the calibrated directions
-    about the fitted centre, the default; True means it too), "paper" (paper B's octants
-    about the running centroid, checked before fitting) or False (no gate). A refused fit
-    has ``success`` False and says why; its coverage is in the result."""
+    radius after calibration). ``gate``: "determined" (every parameter determined by the
+    flight, :func:`maglog.calib.coverage.determine`, the default; True means it too),
+    "paper" (paper B's octants about the running centroid, checked before fitting) or False
+    (no gate). ``determined_nt``: the bound on a determined parameter's 1-sigma in nT of
+    field (None: the noise of one sample, the fit's residual RMS). A refused fit has
+    ``success`` False and says why; its determination and coverage are in the result."""
     b = check_samples(b, 10, "for an ellipsoid's nine parameters")
     field_nt = float(field_nt)
     if not (np.isfinite(field_nt) and 0 < field_nt <= MAX_FIELD_NT):
@@ -145,9 +224,10 @@ def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate="c
     if method not in ("algebraic", "constrained"):
         raise ValueError(f"Method must be 'algebraic' or 'constrained', not {method!r}")
     if gate is True:
-        gate = "centre"
+        gate = "determined"
     if gate not in GATES and gate not in (False, None):
         raise ValueError(f"Gate must be one of {', '.join(GATES)} or False, not {gate!r}")
+    check_bound(determined_nt)
     paper = octant_coverage(b, min_per_octant=min_per_octant)
     nan3 = np.full(3, np.nan)
     if gate == "paper" and not paper.complete:
@@ -181,14 +261,25 @@ def fit_ellipsoid(b, field_nt, *, method="algebraic", min_per_octant=10, gate="c
     about = Coverage(counts=np.bincount(4 * signs[:, 0] + 2 * signs[:, 1] + signs[:, 2],
                                         minlength=8),
                      centroid=center, min_per_octant=min_per_octant, about="fitted centre")
+    rms = float(np.sqrt(np.mean((calibrated - field_nt) ** 2)))
+    x = _canonical(w, center)
+    k = np.zeros((3, 3))
+    k[_UPPER] = x[:6]
+    uncertainties = _uncertainties(b, w, center, field_nt)
+    determination = determine(uncertainties, field_nt, rms, bound_nt=determined_nt)
     success, message = True, "fitted"
-    if gate == "centre" and not about.complete:
+    if gate == "determined" and not determination.complete:
         success = False
-        message = (f"coverage: the field reached {about.filled} of 8 octants about the fitted "
-                   f"centre with {min_per_octant} samples ({about.counts.tolist()}): the "
-                   "offset is undetermined towards the others")
-    return EllipsoidResult(center=center, W=w, radii=np.sort(radii),
-                           rms=float(np.sqrt(np.mean((calibrated - field_nt) ** 2))),
+        names = determination.undetermined
+        message = (f"undetermined: the samples do not determine {', '.join(names)} (1-sigma "
+                   f"{determination.figures(names)}; bound {determination.bound_text})")
+    elif gate == "determined":
+        message = (f"fitted; every parameter determined (1-sigma "
+                   f"{np.max(determination.sigma_nT):.2g} nT of field at most, bound "
+                   f"{determination.bound_text})")
+    return EllipsoidResult(center=center, W=w, radii=np.sort(radii), rms=rms,
                            success=success, message=message,
                            coverage=about if gate != "paper" else paper, method=method,
-                           paper_coverage=paper)
+                           paper_coverage=paper, field_nt=field_nt, K=k, c=x[6:], x=x,
+                           uncertainties=uncertainties, noise_nT=rms,
+                           determination=determination)

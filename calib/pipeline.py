@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from .card import read_logs
-from .coverage import judge_coverage
+from . import scalar as _scalar
+from .coverage import RULE, check_bound, judge_coverage
 from .ellipsoid import fit_ellipsoid
 from .heading import (align_heading, straight_legs, tilt_compensated_heading, true_heading,
                       wrap_degrees)
@@ -173,7 +174,17 @@ class CalibrationRun:
     fitted: np.ndarray = None  # bool per sample: screened in and kept by the robust loss
     held_out: object = None    # calib.holdout.HeldOut, or None (``held_out_note`` says why)
     held_out_note: str = ""
-    coverage: object = None    # calib.coverage.CoverageVerdict (scalar fits)
+    coverage: object = None    # calib.coverage.CoverageVerdict: the one verdict
+
+    @property
+    def verdict(self):
+        """"determined", "undetermined" or "failed" (:mod:`.coverage`)."""
+        return self.coverage.verdict
+
+    @property
+    def success(self):
+        """True only when the fit succeeded and determines every parameter."""
+        return self.coverage.success
 
     @property
     def calibrated(self):
@@ -189,7 +200,16 @@ class CalibrationRun:
         """Everything the user must know about this result: the pipeline's notes (samples
         left out, dates assumed), then the fit's warnings (not converged, at a bound, poorly
         determined)."""
-        return list(self.notes) + list(getattr(self.result, "warnings", []))
+        fit = list(getattr(self.result, "warnings", []))
+        if self.coverage is not None:
+            # The verdict on what the flight determines is calib.coverage's alone: the
+            # scalar fit's own wording of it (by its dilution of precision) is left out.
+            words = getattr(_scalar, "_coverage_warnings", None)
+            res = self.result
+            if words is not None and getattr(res, "dop", None) is not None:
+                own = set(words(res.dop, res.determined, res.held))
+                fit = [w for w in fit if w not in own]
+        return list(self.notes) + fit
 
     def summary(self):
         raw = np.linalg.norm(self.b, axis=1) - self.r
@@ -204,16 +224,28 @@ class CalibrationRun:
                "held_out_note": self.held_out_note or None,
                "screening": {name: screen.as_dict() for name, screen in self.screens.items()},
                "log_report": jsonable(vars(self.parsed.report))}
-        if self.coverage is not None:
-            out["coverage_gate"] = self.coverage.as_dict()
         if self.method == "ellipsoid":
             res = self.result
             out.update(fit=res.method, center_nT=res.center.tolist(), W=res.W.tolist(),
                        W_eigenvalues=np.linalg.eigvalsh(res.W).tolist(),
-                       coverage=res.coverage.report(), success=res.success,
-                       message=res.message)
+                       K=res.K.tolist(), c=res.c.tolist(),
+                       parameters=dict(zip(PARAMETERS, res.x.tolist())),
+                       uncertainties=dict(zip(PARAMETERS, res.uncertainties.tolist())),
+                       coverage=res.coverage.report(), message=res.message)
         else:
             out.update(self.result.as_dict())
+        if self.coverage is not None:
+            # One verdict: success, verdict, the gate and the undetermined parameters all
+            # from calib.coverage (the scalar fit's own "success" is its convergence).
+            gate = self.coverage.as_dict()
+            out["fit_converged"] = bool(self.coverage.fit_ok)
+            out.update(success=self.coverage.success, verdict=self.coverage.verdict,
+                       verdict_message=self.coverage.message, coverage_gate=gate,
+                       undetermined=gate["undetermined"],
+                       held_to_prior=gate["held_to_prior"],
+                       determination={k: gate[k] for k in (
+                           "rule", "bound_nT", "bound_source", "noise_nT", "sigma_nT",
+                           "determined")})
         out["warnings"] = self.warnings
         if self.heading is not None:
             out["heading"] = self.heading.as_dict(self.t)
@@ -520,10 +552,13 @@ def _heading(parsed, t, use_time, vectors, attitude):
 
 
 def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None,
-                   objective="eiv"):
+                   objective="eiv", determined_nt=None):
     """Calibrate the largest log on a card image (or partition image, or plain log).
     ``attitude`` is an optional attitude file (:func:`read_attitude`); ``objective`` is the
-    scalar fit's (:func:`~maglog.calib.scalar.calibrate_scalar`: "eiv" or "paper").
+    scalar fit's (:func:`~maglog.calib.scalar.calibrate_scalar`: "eiv" or "paper");
+    ``determined_nt`` the bound on a determined parameter's 1-sigma in nT of field (None:
+    the noise of one sample; :mod:`.coverage`). The run's :attr:`CalibrationRun.verdict`
+    says whether the flight determines every parameter.
 
     Bad input ends in a :class:`CalibrationError` (or :class:`~maglog.calib.card.CardError`
     from the card reader) that says what is wrong and where; a result that is usable but
@@ -536,15 +571,19 @@ def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None,
     if objective not in OBJECTIVES:
         raise CalibrationError(f"objective must be one of {', '.join(OBJECTIVES)}, not "
                                f"{objective!r}")
+    try:
+        determined_nt = check_bound(determined_nt)
+    except ValueError as error:
+        raise CalibrationError(str(error)) from None
     attitude = None if attitude is None else read_attitude(attitude)
     with _warnings.catch_warnings(), np.errstate(all="ignore"):
         # Library warnings (numpy on a degenerate stretch, matplotlib) are not the user's
         # business: whatever matters is in the result's warnings.
         _warnings.simplefilter("ignore")
-        return _calibrate(path, ref, method, seed, attitude, objective)
+        return _calibrate(path, ref, method, seed, attitude, objective, determined_nt)
 
 
-def _calibrate(path, ref, method, seed, attitude, objective):
+def _calibrate(path, ref, method, seed, attitude, objective, determined_nt=None):
     logs = read_logs(path)
     if not logs:
         raise CalibrationError(f"{path}: no LOG*.TXT file found")
@@ -599,14 +638,22 @@ def _calibrate(path, ref, method, seed, attitude, objective):
     for screen in screens.values():
         if screen.n_rejected:
             notes.append(f"screening: {screen.summary()}")
+    run.coverage = judge_coverage(result, b, field_nt=float(np.median(r[fitted])),
+                                  bound_nt=determined_nt)
     if method != "ellipsoid":
-        run.coverage = judge_coverage(result, b)
         if result.rejected - int(np.count_nonzero(~allowed)):
             notes.append(f"robust loss: {result.rejected - int(np.count_nonzero(~allowed))} "
                          f"samples more than {result.robust_cut_nT:.3g} nT off the fit left "
                          "out of it")
-    run.held_out, run.held_out_note = held_out(
-        t, b, r, fitted, lambda mask: fit(mask)[1], run.residual)
+    def half(mask):
+        result, residual_of = fit(mask)
+        if method == "ellipsoid":
+            # A half whose ellipsoid the samples do not determine says nothing of the fit.
+            verdict = judge_coverage(result, b[mask], bound_nt=determined_nt)
+            if not verdict.success:
+                raise ValueError(f"its ellipsoid is {verdict.message}")
+        return residual_of
+    run.held_out, run.held_out_note = held_out(t, b, r, fitted, half, run.residual)
     before = float(np.sqrt(np.mean((np.linalg.norm(b, axis=1) - r) ** 2)))
     after = float(np.sqrt(np.mean(run.residual ** 2)))
     field_nt = float(np.median(r))
@@ -687,15 +734,17 @@ def _fitter(b, r, method, seed, objective):
     and a function giving its total-field residual on the samples of another mask."""
     def fit(mask):
         if method == "ellipsoid":
-            result = fit_ellipsoid(b[mask], float(np.median(r[mask])))
-            if not result.success and not np.all(np.isfinite(result.W)):
+            # No gate here: what the flight determines is the run's verdict (judged by
+            # calib.coverage as for the scalar fit), not a refusal.
+            result = fit_ellipsoid(b[mask], float(np.median(r[mask])), gate=False)
+            if not np.all(np.isfinite(result.W)):
                 # The algebraic quadric is not an ellipsoid: the constrained fit always is.
                 result = fit_ellipsoid(b[mask], float(np.median(r[mask])),
-                                       method="constrained")
+                                       method="constrained", gate=False)
                 result.warnings.append("the algebraic fit gave no ellipsoid: constrained "
                                        "(Li-Griffiths) fit used")
-            if not result.success:
-                raise ValueError(f"ellipsoid fit refused: {result.message}")
+            if not np.all(np.isfinite(result.W)):
+                raise ValueError(f"ellipsoid fit failed: {result.message}")
 
             def residual_of(other):
                 return np.linalg.norm((b[other] - result.center) @ result.W.T,
@@ -831,19 +880,39 @@ def _plots(run, out, staged, allan):
 
 
 def _coverage_lines(verdict, result):
-    lines = ["## Coverage gate", "", f"Verdict: {verdict.message}.", "",
-             "Judged on the fit itself: each parameter's dilution of precision (its 1-sigma "
-             "in nT of field, K's entries times the field, per nT of noise per sqrt(N); a "
-             "full tumble gives 1.7-4) and the calibrated field's directions about the "
-             "fitted centre.", "",
-             f"- octants about the fitted centre reached (≥ {verdict.min_per_octant} "
-             f"samples): {verdict.octants_reached} of 8 ({verdict.octants.tolist()})",
+    lines = ["## Coverage gate: what the flight determines", "",
+             f"Verdict: {verdict.message}.", "",
+             f"The rule (one for the gate, `success` and `verdict` in parameters.json, this "
+             f"report, the printed verdict and `maglog run`'s parameters check): {RULE}.",
+             "", "Octants, for information only (they do not say how well a parameter is "
+             "known):", "",
+             f"- the calibrated field's octants about the fitted centre reached (≥ "
+             f"{verdict.min_per_octant} samples): {verdict.octants_reached} of 8 "
+             f"({verdict.octants.tolist()})",
              f"- paper B's check, octants about the running centroid of the raw samples: "
              f"{verdict.paper_filled} of 8 filled ({verdict.paper_octants.tolist()}); it "
              "counts octants of a centroid inside the covered cap, so it fills on flights "
              "that leave parameters undetermined"]
-    if result.rejected:
+    if getattr(result, "rejected", 0):
         lines.append(f"- samples not fitted: {result.rejected}")
+    return lines + [""]
+
+
+def _parameter_lines(run):
+    """The parameters (canonical k11..c3 for every method), each with its 1-sigma, in nT of
+    field, and whether the flight determines it (:mod:`.coverage`)."""
+    res, d = run.result, run.coverage.determination
+    lines = [f"Determined: 1-sigma in nT of field at most {d.bound_text}.", "",
+             "| parameter | value | 1 sigma | 1 sigma in nT of field | determined |",
+             "|---|---:|---:|---:|---|"]
+    for i, (n, v, u) in enumerate(zip(PARAMETERS, res.x, res.uncertainties)):
+        if d.held[i]:
+            sigma, field_sigma, state = "none", "none", "no: held to the prior"
+        else:
+            sigma = f"{u:.2g}" if np.isfinite(u) else "none"
+            field_sigma = f"{d.sigma_nT[i]:.3g}" if np.isfinite(d.sigma_nT[i]) else "none"
+            state = "yes" if d.determined[i] else "**no: undetermined**"
+        lines.append(f"| {n} | {v:.6g} | {sigma} | {field_sigma} | {state} |")
     return lines + [""]
 
 
@@ -968,22 +1037,13 @@ def _report_lines(run, summary, files, allan=None):
         lines.append(f"- held out: {run.held_out.message}")
     else:
         lines.append(f"- held out: not scored ({run.held_out_note})")
-    if run.coverage is not None:
-        lines.append(f"- coverage gate: {run.coverage.message}")
+    lines.insert(2, f"- **verdict: {run.coverage.verdict.upper()}** — {run.coverage.message}")
     lines.append("")
     if run.warnings:
         lines += ["## Warnings", ""] + [f"- {warning}" for warning in run.warnings] + [""]
-    lines += ["## Parameters", ""]
+    lines += ["## Parameters", ""] + _parameter_lines(run)
     if run.method != "ellipsoid":
-        lines += ["| parameter | value | uncertainty (1 sigma) | dilution of precision | "
-                  "determined by the coverage |", "|---|---:|---:|---:|---|"]
-        for n, v, u, d, ok, held in zip(PARAMETERS, res.x, res.uncertainties, res.dop,
-                                        res.determined, res.held):
-            sigma = "none (held to the prior)" if held else f"{u:.2g}"
-            verdict = "no: held to the isotropic prior" if held else (
-                "yes" if ok else "no: fitted, weakly")
-            lines.append(f"| {n} | {v:.6g} | {sigma} | {d:.3g} | {verdict} |")
-        lines += ["", "Paper's Table 1 form: P = K^-1 and the offset P c (nT):", "",
+        lines += ["Paper's Table 1 form: P = K^-1 and the offset P c (nT):", "",
                   "```", np.array2string(res.P, precision=5),
                   np.array2string(res.offset_sensor, precision=2), "```", ""]
     else:
@@ -995,14 +1055,9 @@ def _report_lines(run, summary, files, allan=None):
                   "scalar model it leaves the frame's rotation free.", "",
                   "```", "centre (nT): " + np.array2string(res.center, precision=1),
                   "W:", np.array2string(res.W, precision=6), "```", "",
-                  f"Coverage gate: the calibrated field reached {res.coverage.filled} of 8 "
-                  f"octants about the {res.coverage.about} with at least "
-                  f"{res.coverage.min_per_octant} samples ({res.coverage.counts.tolist()}); "
-                  f"paper B's check (octants about the running centroid of the raw samples): "
-                  f"{res.paper_coverage.filled} of 8 ({res.paper_coverage.counts.tolist()}).",
-                  ""]
-    if run.coverage is not None:
-        lines += _coverage_lines(run.coverage, res)
+                  "The table gives the same fit in the scalar model's form (K the "
+                  "upper-triangular factor of W, c = K centre).", ""]
+    lines += _coverage_lines(run.coverage, res)
     lines += _screening_lines(run)
     if run.heading is not None:
         lines += _heading_lines(run.heading, run.t)

@@ -25,6 +25,9 @@ __all__ = ["main"]
 #: Seeds are 32-bit unsigned integers (numpy's SeedSequence takes any non-negative integer;
 #: this is the range that reproduces everywhere, also as a C ``uint32_t``).
 SEED_MAX = (1 << 32) - 1
+#: ``calibrate --determined-nT``: calib.coverage.BOUND_RANGE_NT (not imported here: it loads
+#: the fits and numba, seconds before any --help).
+DETERMINED_NT_RANGE = (0.001, 10_000.0)
 #: The demo flight's length: an hour is already hours of Icarus time at the real baud rate.
 DEMO_SECONDS_MAX = 3600.0
 #: A system clock the gateware can be generated for: Cyclone IV E runs its logic well below
@@ -425,7 +428,8 @@ def _cmd_calibrate(args):
         print(f"attitude: {beside} (beside the card)")
     try:
         run = calibrate_card(card, ref=args.ref, method=args.method, seed=args.seed,
-                             attitude=attitude, objective=args.objective)
+                             attitude=attitude, objective=args.objective,
+                             determined_nt=args.determined_nT)
     except (CardError, CalibrationError) as error:
         raise CliError(str(error)) from None
     _progress(f"[2/3] {run.log_name}: {len(run.b)} samples calibrated ({run.method}, "
@@ -455,8 +459,7 @@ def _cmd_calibrate(args):
               "straight, level legs (removed from the aligned headings)")
     if run.held_out is None:
         print(f"held out: not scored ({run.held_out_note})")
-    if run.coverage is not None:
-        print(f"coverage gate: {run.coverage.message}")
+    print(f"verdict: {run.coverage.verdict.upper()}: {run.coverage.message}")
     for warning in run.warnings:
         print(f"warning: {warning}")
     print(f"report: {paths['markdown']}")
@@ -517,9 +520,12 @@ def _cmd_run(args):
     print(summary.text)
     print(f"report: {summary.files['report']}")
     print(f"papers: {summary.files['papers']}")
-    if not summary.ok:
+    if summary.failed:
         raise CliError("the run does not match its scenario's truth: "
                        + ", ".join(summary.failed))
+    if not summary.ok:
+        raise CliError(f"the flight does not determine {', '.join(summary.undetermined)}: "
+                       "not scored, so the run cannot pass (see the parameters check)")
 
 
 def _port_arg(text):
@@ -828,6 +834,13 @@ def _parser():
                                 "%(default)s)")
     calibrate.add_argument("--seed", type=_int_in(0, SEED_MAX), default=0,
                            help=f"PSO seed, 0 to {SEED_MAX} (default: 0)")
+    calibrate.add_argument("--determined-nT", dest="determined_nT", metavar="NT",
+                           type=_float_in(*DETERMINED_NT_RANGE), default=None,
+                           help="a parameter counts as determined by the flight when its "
+                                "1-sigma, in nT of field, is at most this (default: the "
+                                "noise of one sample, the fit's residual RMS: no parameter "
+                                "then adds more to a calibrated sample than the sensor's "
+                                "own noise); the verdict is UNDETERMINED otherwise")
     attitude = calibrate.add_mutually_exclusive_group()
     attitude.add_argument("--attitude", metavar="CSV",
                           help="known attitude (t,roll_deg,pitch_deg,heading_deg; t in s "

@@ -9,8 +9,11 @@ Four scores, each with a one-line verdict:
   bytes, SHA-256). The logger writes the kept frames verbatim, so the file must be equal.
 - residual: the total-field RMS after calibration against ``truth["noise_floor_nT"]``, the
   residual a perfect calibration leaves (see :data:`RESIDUAL_RATIO`).
-- parameters: the recovered K and c against the truth's, with the fit's 1σ and z where the
-  method gives them (see :data:`Z_MAX`, :data:`K_ABS`, :data:`C_ABS_NT`).
+- parameters: the recovered K and c against the truth's, with the fit's 1σ and z (see
+  :data:`Z_MAX`, :data:`K_ABS`, :data:`C_ABS_NT`). Only the parameters the flight determines
+  are scored, by the calibration's own verdict (:mod:`maglog.calib.coverage`: 1-sigma in nT
+  of field within the noise of one sample, or the bound given); a flight that leaves any
+  undetermined ends UNDETERMINED, naming them, never ALL CHECKS PASS.
 
 ``summarize(truth, counters, logs, run)`` returns a :class:`Summary`; nothing is printed.
 """
@@ -53,19 +56,17 @@ Z_MAX = 5.0
 #: (the ellipsoid fit).
 K_ABS = 1e-4
 C_ABS_NT = 5.0
-#: A parameter whose 1σ is above these (or not finite) is not determined by the flight:
-#: its 5σ band (0.5 % of scale, 250 nT of offset: hundreds of nT on a 50,000 nT field)
-#: lets any value through, so a small z says nothing. It passes only by the absolute
-#: tolerances above; otherwise the check fails and says "not determined by this flight".
-SIGMA_K_MAX = 1e-3
-SIGMA_C_MAX_NT = 50.0
+#: Which parameters are scored at all: those the calibration's verdict calls determined
+#: (calib.coverage.RULE). An undetermined one is not scored (a small z on a huge 1σ says
+#: nothing) and the check is UNDETERMINED, naming it.
+DETERMINED = "determined by the flight (calib.coverage): 1 sigma in nT of field within the " \
+             "noise of one sample (or the bound given)"
 #: Every tolerance, as Summary.as_dict() reports it.
 TOLERANCES = {"frames": "equal (0 difference)", "log": "equal bytes (SHA-256)",
               "residual_ratio": list(RESIDUAL_RATIO), "z_max": Z_MAX, "k_abs": K_ABS,
-              "c_abs_nT": C_ABS_NT, "sigma_k_max": SIGMA_K_MAX,
-              "sigma_c_max_nT": SIGMA_C_MAX_NT}
+              "c_abs_nT": C_ABS_NT, "scored": DETERMINED}
 
-PASS, FAIL, SKIP = "pass", "fail", "skip"
+PASS, FAIL, SKIP, UNDETERMINED = "pass", "fail", "skip", "undetermined"
 
 
 @dataclass(frozen=True)
@@ -93,11 +94,33 @@ class Summary:
         return [c.name for c in self.checks if c.status == FAIL]
 
     @property
+    def undetermined(self):
+        """The parameters the flight does not determine (not scored)."""
+        return list(self.data.get("undetermined") or [])
+
+    @property
     def ok(self):
-        return not self.failed
+        return not self.failed and not any(c.status == UNDETERMINED for c in self.checks)
+
+    @property
+    def verdict(self):
+        """The run's verdict line (after "=> ")."""
+        parts = []
+        if self.failed:
+            parts.append(f"FAILED: {', '.join(self.failed)}")
+        if any(c.status == UNDETERMINED for c in self.checks):
+            parts.append(f"UNDETERMINED: the flight does not determine "
+                         f"{', '.join(self.undetermined)} (not scored)")
+        text = "; ".join(parts) or "ALL CHECKS PASS"
+        skipped = sum(c.status == SKIP for c in self.checks)
+        if skipped:
+            text += f" ({skipped} skipped: nothing to check against)"
+        return text
 
     def as_dict(self):
-        return _jsonable({"ok": self.ok, "failed": self.failed, "tolerances": TOLERANCES,
+        return _jsonable({"ok": self.ok, "failed": self.failed,
+                          "undetermined": self.undetermined, "verdict": self.verdict,
+                          "tolerances": TOLERANCES,
                           "checks": [{"name": c.name, "status": c.status, "detail": c.detail,
                                       "tolerance": c.tolerance} for c in self.checks],
                           **self.data})
@@ -262,13 +285,11 @@ def canonical_kc(k, c):
 
 
 def recovered_kc(run):
-    """The run's K, c and 1σ per parameter (None: the method gives none)."""
+    """The run's K, c (canonical) and 1σ per parameter. The ellipsoid fit gives them in
+    this form too (|W (b - centre)| = field: W = Q K, c = K centre)."""
     res = run.result
-    if run.method == "ellipsoid":
-        # |W (b - centre)| = field: W = Q R, so K = R and c = R centre.
-        k, _ = canonical_kc(res.W, np.zeros(3))
-        return k, k @ res.center, None
-    return np.asarray(res.K), np.asarray(res.c), np.asarray(res.uncertainties)
+    k, c = canonical_kc(res.K, res.c)
+    return k, c, np.asarray(res.uncertainties, dtype=float)
 
 
 def _residual(truth, run):
@@ -308,52 +329,61 @@ def _parameters(truth, run):
     ours = np.concatenate([k[iu], c])
     true = np.concatenate([k_true[iu], c_true])
     diff = ours - true
-    z = None if sigma is None else np.where(sigma > 0, diff / np.where(sigma > 0, sigma, 1),
-                                            np.inf * np.sign(diff))
-    lines = [f"Recovered parameters ({run.method}) against the truth",
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.where(np.isfinite(sigma) & (sigma > 0), diff / np.where(sigma > 0, sigma, 1),
+                     np.nan)
+    verdict = run.coverage
+    determined = np.asarray(verdict.determined, bool)
+    field_sigma = verdict.determination.sigma_nT
+    lines = [f"Recovered parameters ({run.method}) against the truth; scored only where the "
+             f"flight determines them (1 sigma in nT of field <= "
+             f"{verdict.determination.bound_text})",
              f"  {'':5s}{'recovered':>14s}{'truth':>14s}{'difference':>13s}{'1 sigma':>11s}"
-             f"{'z':>8s}"]
+             f"{'z':>8s}{'1 sigma nT':>12s}  determined"]
     bad, undetermined, rows = [], [], {}
     for i, name in enumerate(PARAMETERS):
         absolute = C_ABS_NT if name.startswith("c") else K_ABS
         small = abs(diff[i]) <= absolute
-        sigma_max = SIGMA_C_MAX_NT if name.startswith("c") else SIGMA_K_MAX
-        determined = sigma is not None and bool(np.isfinite(sigma[i])) \
-            and sigma[i] <= sigma_max
-        within = z is not None and determined and abs(z[i]) <= Z_MAX
+        within = bool(np.isfinite(z[i])) and abs(z[i]) <= Z_MAX
         fmt = ".2f" if name.startswith("c") else ".6f"
-        s = "" if sigma is None else f"{sigma[i]:.2g}"
-        zs = "" if z is None else f"{z[i]:+.1f}"
-        mark = "" if (small or within) else " *"
-        lines.append(f"  {name:5s}{ours[i]:>14{fmt}}{true[i]:>14{fmt}}{diff[i]:>+13{fmt}}"
-                     f"{s:>11s}{zs:>8s}{mark}")
-        rows[name] = {"recovered": ours[i], "truth": true[i], "difference": diff[i],
-                      "sigma": None if sigma is None else sigma[i],
-                      "z": None if z is None else z[i],
-                      "determined": None if sigma is None else determined}
-        if small or within:
-            continue
-        if sigma is not None and not determined:
-            undetermined.append(f"{name} off by {diff[i]:+.3g} (1 sigma {sigma[i]:.2g})")
+        s = f"{sigma[i]:.2g}" if np.isfinite(sigma[i]) else "none"
+        zs = f"{z[i]:+.1f}" if np.isfinite(z[i]) else ""
+        fs = f"{field_sigma[i]:.3g}" if np.isfinite(field_sigma[i]) else "none"
+        if not determined[i]:
+            mark, state = "", "no: not scored"
+            undetermined.append(name)
         else:
-            bad.append(f"{name} off by {diff[i]:+.3g}" + ("" if z is None else
-                                                         f" (z {z[i]:+.1f})"))
-    tol = (f"|z| <= {Z_MAX:g} with 1 sigma <= {SIGMA_K_MAX:g} (K), {SIGMA_C_MAX_NT:g} nT "
-           f"(c), or |dK| <= {K_ABS:g} and |dc| <= {C_ABS_NT:g} nT")
-    finite = None if z is None else np.abs(z)[np.isfinite(sigma) & (sigma > 0)]
-    worst = "" if finite is None or not finite.size else \
-        f", largest |z| {np.max(finite):.1f}"
-    if undetermined:
-        lines.append("  (1 sigma above the limit: not determined by this flight)")
-    if bad or undetermined:
-        parts = (["not recovered: " + ", ".join(bad)] if bad else []) + \
-            (["not determined by this flight (its attitudes do not separate them; see "
-              "the calibration warnings): " + ", ".join(undetermined)]
-             if undetermined else [])
-        check = Check("parameters", FAIL, "; ".join(parts), tol)
+            mark, state = ("", "yes") if (small or within) else (" *", "yes")
+            if not (small or within):
+                bad.append(f"{name} off by {diff[i]:+.3g} (z {z[i]:+.1f})")
+        lines.append(f"  {name:5s}{ours[i]:>14{fmt}}{true[i]:>14{fmt}}{diff[i]:>+13{fmt}}"
+                     f"{s:>11s}{zs:>8s}{fs:>12s}  {state}{mark}")
+        rows[name] = {"recovered": ours[i], "truth": true[i], "difference": diff[i],
+                      "sigma": sigma[i], "z": z[i], "sigma_nT": field_sigma[i],
+                      "determined": bool(determined[i])}
+    tol = (f"scored where determined (1 sigma <= {verdict.determination.bound_nT:.3g} nT of "
+           f"field); there |z| <= {Z_MAX:g}, or |dK| <= {K_ABS:g} and |dc| <= {C_ABS_NT:g} nT")
+    scored = np.abs(z)[determined & np.isfinite(z)]
+    worst = f", largest |z| {np.max(scored):.1f}" if scored.size else ""
+    if verdict.verdict == "failed":
+        check = Check("parameters", FAIL, f"the fit failed: {verdict.fit_message}", tol)
+    elif bad:
+        check = Check("parameters", FAIL, "not recovered: " + ", ".join(bad) + (
+            f"; not determined by this flight (not scored): {', '.join(undetermined)}"
+            if undetermined else ""), tol)
+    elif undetermined:
+        kept = [n for n, d in zip(PARAMETERS, determined) if d]
+        check = Check("parameters", UNDETERMINED,
+                      f"the flight does not determine {', '.join(undetermined)} (1 sigma "
+                      f"{verdict.determination.figures(undetermined)}; bound "
+                      f"{verdict.determination.bound_text}): not scored"
+                      + (f"; the {len(kept)} determined within tolerance{worst}" if kept
+                         else ""), tol)
     else:
-        check = Check("parameters", PASS, f"K within {np.max(np.abs(diff[:6])):.2g}, c within "
+        check = Check("parameters", PASS, f"every parameter determined; K within "
+                      f"{np.max(np.abs(diff[:6])):.2g}, c within "
                       f"{np.max(np.abs(diff[6:])):.2g} nT of the truth{worst}", tol)
+    rows["undetermined"] = undetermined
     return lines, [check], rows
 
 
@@ -402,15 +432,13 @@ def summarize(truth, counters, logs, run, *, calibration_error=None):
         blocks.append(lines)
         checks += found
         lines, found, data["parameters"] = _parameters(truth, run)
+        data["undetermined"] = data["parameters"].pop("undetermined", [])
         blocks.append(lines)
         checks += found
         if run.warnings:
             blocks.append(["Calibration warnings"] + [f"  - {w}" for w in run.warnings])
-    skipped = sum(c.status == SKIP for c in checks)
-    verdict = "ALL CHECKS PASS" if not any(c.status == FAIL for c in checks) else \
-        f"FAILED: {', '.join(c.name for c in checks if c.status == FAIL)}"
-    if skipped:
-        verdict += f" ({skipped} skipped: nothing to check against)"
-    blocks.append(["Verdicts"] + [f"  {c.line()}" for c in checks] + [f"  => {verdict}"])
-    text = "\n\n".join("\n".join(block) for block in blocks) + "\n"
-    return Summary(text=text, checks=checks, data=data)
+    summary = Summary(text="", checks=checks, data=data)
+    blocks.append(["Verdicts"] + [f"  {c.line()}" for c in checks]
+                  + [f"  => {summary.verdict}"])
+    summary.text = "\n\n".join("\n".join(block) for block in blocks) + "\n"
+    return summary

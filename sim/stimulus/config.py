@@ -128,8 +128,8 @@ SCHEMA = {
         "headings_deg": Key("floats", [0.0, 90.0, 180.0, 270.0]),
         "seconds": Key("float", 20.0, _SECONDS),
         "turn_s": Key("float", 4.0, _from(0.0, 3600.0)),
-        "roll_deg": Key("float", 30.0, _within(0.0, 60.0)),
-        "pitch_deg": Key("float", 30.0, _within(0.0, 60.0)),
+        "roll_deg": Key("float", 60.0, _within(0.0, 60.0)),
+        "pitch_deg": Key("float", 60.0, _within(0.0, 60.0)),
         "yaw_deg": Key("float", 45.0, _within(0.0, 180.0)),
     },
     "flight.survey": {

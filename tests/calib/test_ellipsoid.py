@@ -1,4 +1,4 @@
-"""Ellipsoid fits against known soft and hard iron, and the coverage gate."""
+"""Ellipsoid fits against known soft and hard iron, and the gate on what they determine."""
 
 import numpy as np
 import pytest
@@ -31,31 +31,57 @@ def test_recovers_hard_and_soft_iron(method):
     assert result.rms < 10
 
 
-@pytest.mark.parametrize("gate", ["centre", "paper"])
-def test_gate_refuses_until_every_octant_is_filled(gate):
+def test_paper_gate_refuses_until_every_octant_is_filled():
     b, _, hard = samples(2)
-    early = fit_ellipsoid(b[:30], FIELD, min_per_octant=10, gate=gate)   # too few yet
+    early = fit_ellipsoid(b[:30], FIELD, min_per_octant=10, gate="paper")   # too few yet
     assert not early.success and early.coverage.filled < 8
     assert "octants" in early.message
-    later = fit_ellipsoid(b, FIELD, min_per_octant=10, gate=gate)
+    later = fit_ellipsoid(b, FIELD, min_per_octant=10, gate="paper")
     assert later.success and later.coverage.filled == 8
-    assert later.coverage.about == ("fitted centre" if gate == "centre" else
-                                    "running centroid")
+    assert later.coverage.about == "running centroid"
 
 
-def test_centre_gate_refuses_one_side_where_the_paper_gate_accepts():
-    # A hemisphere of directions: paper B's running centroid sits inside it and all eight
-    # octants about it fill; about the fitted centre only four do, and the fit is refused
-    # (its centre and W kept for inspection).
-    b, _, hard = samples(5, n=3000, hemisphere=True)
-    paper = fit_ellipsoid(b, FIELD, gate="paper")
-    centre = fit_ellipsoid(b, FIELD)
-    assert paper.success and paper.coverage.complete
-    assert not centre.success and centre.coverage.filled == 4
-    assert "4 of 8 octants about the fitted centre" in centre.message
-    assert np.all(np.isfinite(centre.center)) and centre.paper_coverage.complete
-    with pytest.raises(ValueError, match="Gate must be one of centre, paper or False, not 'x'"):
+def test_the_gate_accepts_what_the_samples_determine_whatever_the_octants():
+    # A hemisphere of directions: four octants about the fitted centre, yet every parameter
+    # is pinned down well within one sample's noise. The old gate on octants about the
+    # centre refused it; the gate on what the fit determines accepts it.
+    b, soft, hard = samples(5, n=3000, hemisphere=True)
+    fit = fit_ellipsoid(b, FIELD)
+    assert fit.success, fit.message
+    assert fit.coverage.filled == 4 and fit.coverage.about == "fitted centre"
+    assert fit.determination.complete and fit.message.startswith("fitted; every parameter")
+    np.testing.assert_allclose(fit.center, hard, atol=10.0)
+    # The canonical form is the scalar model's, and within its 1-sigma of the truth.
+    q, r = np.linalg.qr(np.linalg.inv(soft))
+    k = r * np.sign(np.diag(r))[:, None]
+    truth = np.concatenate([k[np.triu_indices(3)], k @ hard])
+    assert np.all(np.abs(fit.x - truth) < 5 * fit.uncertainties)
+    with pytest.raises(ValueError, match="Gate must be one of determined, paper or False, "
+                                         "not 'x'"):
         fit_ellipsoid(b, FIELD, gate="x")
+
+
+@pytest.mark.parametrize("coverage, missing", [("uav", {"k33", "c3"}), ("planar", None)])
+def test_the_gate_refuses_what_the_samples_leave_undetermined(coverage, missing):
+    # The same flights the scalar fit calls undetermined (calib.coverage): a minute of a
+    # UAV's +-30 deg leaves k33 and c3 at about twice the noise; a near-level flight leaves
+    # most parameters free. They fit the samples (the RMS is the noise) and are refused,
+    # naming what the samples leave free; the fit is kept for inspection.
+    from maglog.sim.stimulus.scenario import make_flight
+    flight = make_flight(coverage=coverage, seconds=60, rate=20, seed=3)
+    fit = fit_ellipsoid(flight.b_meas, float(np.median(flight.total)))
+    assert fit.rms < 1.1 * flight.errors.noise
+    assert not fit.success and fit.message.startswith("undetermined: the samples do not "
+                                                      "determine")
+    found = set(fit.determination.undetermined)
+    assert found == missing if missing else {"k33", "c3"} < found, fit.message
+    assert np.all(np.isfinite(fit.W)) and np.all(np.isfinite(fit.center))
+    # A bound as loose as the user likes accepts it; ungated, it is a fit like any other.
+    assert fit_ellipsoid(flight.b_meas, float(np.median(flight.total)),
+                         determined_nt=1e4).success
+    assert fit_ellipsoid(flight.b_meas, float(np.median(flight.total)), gate=False).success
+    with pytest.raises(ValueError, match="bound on a determined parameter"):
+        fit_ellipsoid(flight.b_meas, 5e4, determined_nt=-1)
 
 
 def test_coverage_counts_every_octant():

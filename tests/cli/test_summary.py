@@ -8,6 +8,7 @@ import pytest
 
 from maglog.calib.card import read_logs
 from maglog.calib.pipeline import CalibrationError
+from maglog.calib.scalar import PARAMETERS
 from maglog.cli.summary import (C_ABS_NT, RESIDUAL_RATIO, Z_MAX, canonical_kc, log_frames,
                                 summarize)
 
@@ -174,30 +175,45 @@ def test_default_scenario_log_scores_clean(tmp_path):
 
 
 @pytest.mark.parametrize("sigma", [np.inf, 1e4])
-def test_parameters_the_flight_does_not_determine_fail_and_say_so(flown, sigma):
+def test_parameters_the_flight_does_not_determine_are_not_scored(flown, sigma):
     # A flight that does not turn an axis against the field leaves its parameters with a
-    # huge (or infinite) 1 sigma: z rounds to 0 however far off they are. Such a parameter
-    # passes only by the absolute tolerance; otherwise the check fails and says why.
+    # huge (or infinite) 1 sigma: z rounds to 0 however far off they are. The calibration's
+    # verdict (calib.coverage) calls them undetermined; the run does not score them, and
+    # ends UNDETERMINED naming them, never ALL CHECKS PASS.
     import dataclasses
+    from maglog.calib.coverage import judge_coverage
     _, _, image, truth, run, counters = flown
-    loose = dataclasses.replace(run, result=dataclasses.replace(
-        run.result, uncertainties=np.full(9, sigma)))
+    result = dataclasses.replace(run.result, uncertainties=np.full(9, sigma))
+    loose = dataclasses.replace(run, result=result,
+                                coverage=judge_coverage(result, run.b,
+                                                        field_nt=float(np.median(run.r))))
+    assert loose.verdict == "undetermined"
     wrong = copy.deepcopy(truth)
     wrong["errors"]["c"][0] += 700.0               # c1 off by 700 nT: z ~ 0 with this sigma
     summary = summarize(wrong, counters, read_logs(image), loose)
     check = summary.checks[-1]
-    assert check.name == "parameters" and check.status == "fail", check.line()
-    assert "not determined by this flight" in check.detail and "c1 off by" in check.detail
-    assert summary.failed == ["parameters"]
-    assert "not determined by this flight" in summary.text
-    strict(summary)
-    # The same loose sigma with a truth the fit recovered within the absolute tolerances:
-    # nothing to fail.
+    assert check.name == "parameters" and check.status == "undetermined", check.line()
+    assert check.detail.startswith("the flight does not determine k11, k12, k13, k22, k23, "
+                                   "k33, c1, c2, c3")
+    assert not summary.ok and summary.failed == [] and "ALL CHECKS PASS" not in summary.text
+    assert summary.undetermined == list(PARAMETERS)
+    assert "=> UNDETERMINED: the flight does not determine k11" in summary.text
+    assert strict(summary)["verdict"].startswith("UNDETERMINED")
+    # The same with a truth the fit recovered: still undetermined, not a pass.
     exact = copy.deepcopy(truth)
     exact["errors"]["K"] = np.asarray(run.result.K).tolist()
-    exact["errors"]["c"] = (np.asarray(run.result.c) + 1.0).tolist()
-    assert summarize(exact, counters, read_logs(image), loose).ok
-    # A determined parameter (the fit's own sigma) 700 nT off still fails as not recovered.
+    exact["errors"]["c"] = np.asarray(run.result.c).tolist()
+    assert not summarize(exact, counters, read_logs(image), loose).ok
+    # A determined parameter (the fit's own sigma) 700 nT off fails as not recovered.
     summary = summarize(wrong, counters, read_logs(image), run)
+    assert summary.checks[-1].status == "fail" and summary.failed == ["parameters"]
     assert "not recovered: c1" in summary.checks[-1].detail
     assert "not determined" not in summary.checks[-1].detail
+    # Failed and undetermined together: both named.
+    changed = copy.deepcopy(counters)
+    changed["gps"]["kept"] -= 1
+    summary = summarize(truth, changed, read_logs(image), loose)
+    assert "=> FAILED: frames.gps; UNDETERMINED: the flight does not determine" in \
+        summary.text
+
+
