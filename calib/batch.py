@@ -14,6 +14,10 @@ A job is a plain dict (so that it pickles to any Dask worker):
 seeded, the rest has no randomness), so the three give the same products; each result
 carries a digest of its map and samples to show it (:func:`product_digest`).
 A job that fails returns its one-line error instead of products; the others go on.
+Nothing is printed: ``on_done(record, done, total)`` hears of each job as it finishes (in
+the order they finish), and a job run in this process tells ``stages(label, seconds)`` of
+each of its stages as it starts (``seconds`` None) and ends: :data:`FLY` (scenario jobs),
+the reduction's own (:data:`maglog.calib.survey.STAGES`), :data:`WRITE`.
 """
 
 from __future__ import annotations
@@ -28,7 +32,11 @@ import numpy as np
 from .survey_errors import SurveyError
 
 __all__ = ["run_batch", "survey_job", "product_digest", "options_from_dict",
-           "probe_scheduler"]
+           "probe_scheduler", "FLY", "WRITE"]
+
+#: A job's stages before and after the reduction's own.
+FLY = "flying the scenario through the logger (model backend)"
+WRITE = "writing the products (grids, plots, report)"
 
 
 def options_from_dict(values):
@@ -67,10 +75,21 @@ def _is_survey_truth(path):
         return False
 
 
-def survey_job(job):
+def _timed(stages, label, call, *args):
+    """``call(*args)``, its start and end told to ``stages`` (if any)."""
+    if stages is None:
+        return call(*args)
+    stages(label, None)
+    started = time.perf_counter()
+    value = call(*args)
+    stages(label, time.perf_counter() - started)
+    return value
+
+
+def survey_job(job, stages=None):
     """Run one job (module docstring); returns a plain dict: ``name``, ``out``, ``ok``,
     ``error`` (one line, or None), ``digest``, ``figures`` (survey.json's content) and
-    ``wall_s``."""
+    ``wall_s``. ``stages``: see the module docstring."""
     from .card import CardError
     from .pipeline import CalibrationError
     from .survey import survey_card, summary, write_products
@@ -82,7 +101,7 @@ def survey_job(job):
     try:
         values = dict(job.get("options") or {})
         if "scenario" in job:
-            card = _fly(job["scenario"], int(job["seed"]), out)
+            card = _timed(stages, FLY, _fly, job["scenario"], int(job["seed"]), out)
             values.setdefault("truth", str(out / "truth.json"))
             values.setdefault("base_station", _beside(card, "base.csv", None, False))
         else:
@@ -90,8 +109,8 @@ def survey_job(job):
             if not card.is_file():
                 raise SurveyError(f"{card}: no such card image")
         options = options_from_dict(values)
-        result = survey_card(card, options)
-        write_products(result, out)
+        result = survey_card(card, options, progress=stages)
+        _timed(stages, WRITE, write_products, result, out)
         record.update(ok=True, digest=product_digest(result), figures=summary(result))
     except (SurveyError, CardError, CalibrationError) as error:
         record["error"] = str(error)
@@ -186,11 +205,17 @@ def probe_scheduler(address, timeout=PROBE_TIMEOUT_S):
     return f"tcp://{rest}"
 
 
-def run_batch(jobs, *, scheduler=None, workers=2, serial=False):
-    """Run ``jobs`` and return their records in the jobs' order (module docstring)."""
+def run_batch(jobs, *, scheduler=None, workers=2, serial=False, on_done=None, stages=None):
+    """Run ``jobs`` and return their records in the jobs' order (module docstring;
+    ``stages`` is told of the stages of jobs run in this process, ``serial``)."""
     jobs = list(jobs)
     if serial or not jobs:
-        return [survey_job(job) for job in jobs]
+        records = []
+        for job in jobs:
+            records.append(survey_job(job, stages))
+            if on_done is not None:
+                on_done(records[-1], len(records), len(jobs))
+        return records
     from dask.distributed import Client, LocalCluster
     if scheduler is not None:
         address = probe_scheduler(scheduler)
@@ -212,17 +237,22 @@ def run_batch(jobs, *, scheduler=None, workers=2, serial=False):
                               "one after another with --serial") from None
         client = Client(cluster)
     try:
+        from dask.distributed import as_completed
         futures = client.map(survey_job, jobs, pure=False)
-        records = []
-        for job, future in zip(jobs, futures):
+        index = {future.key: k for k, future in enumerate(futures)}
+        records = [None] * len(jobs)
+        for done, future in enumerate(as_completed(futures), 1):
+            k = index[future.key]
             try:
-                records.append(future.result())
+                records[k] = future.result()
             except Exception as error:      # noqa: BLE001 - a lost worker ends its job only
-                out = Path(job["out"])
-                records.append({"name": job.get("name") or out.name, "out": str(out),
-                                "ok": False, "digest": None, "figures": None, "wall_s": 0.0,
-                                "error": f"the Dask worker failed ({type(error).__name__}: "
-                                         f"{error})"})
+                out = Path(jobs[k]["out"])
+                records[k] = {"name": jobs[k].get("name") or out.name, "out": str(out),
+                              "ok": False, "digest": None, "figures": None, "wall_s": 0.0,
+                              "error": f"the Dask worker failed ({type(error).__name__}: "
+                                       f"{error})"}
+            if on_done is not None:
+                on_done(records[k], done, len(jobs))
         return records
     finally:
         client.close()

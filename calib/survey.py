@@ -340,18 +340,20 @@ def _check_path(path, what):
     return path
 
 
-def survey_card(path, options=None):
+def survey_card(path, options=None, *, progress=None):
     """Reduce the largest log on a card image (or partition image, or plain log) to a
     levelled, gridded anomaly (module docstring). Bad input ends in a :class:`SurveyError`
     (or the card reader's and calibration's own errors, which the caller reports the same
-    way). Nothing is printed."""
+    way). Nothing is printed: ``progress``, if given, is told of each of :data:`STAGES` as
+    ``progress(label, None)`` when it starts and ``progress(label, seconds)`` when it
+    ends."""
     from threadpoolctl import threadpool_limits
     options = (options or SurveyOptions()).check()
     # One BLAS thread: a threaded BLAS sums in an order that depends on its thread count,
     # and a Dask worker runs with one; the same card must give the same map anywhere.
     with _warnings.catch_warnings(), np.errstate(all="ignore"), threadpool_limits(1):
         _warnings.simplefilter("ignore")
-        return _survey(Path(path), options)
+        return _survey(Path(path), options, progress)
 
 
 def _clock():
@@ -359,7 +361,41 @@ def _clock():
     return time.perf_counter()
 
 
-def _survey(path, options):
+#: The reduction's stages in order: (key, what it does). A key ending in ``_s`` is also the
+#: stage's entry in :attr:`SurveyResult.times` (survey.json's ``times_s``).
+STAGES = (("vector_calibration_s", "reading the log, calibrating the vector magnetometer"),
+          ("timing_georef_s", "timing the cesium, georeferencing"),
+          ("tolles_lawson_s", "compensating (Tolles–Lawson; deinterf beside it)"),
+          ("igrf_diurnal_s", "IGRF and the diurnal correction"),
+          ("lag_s", "the positions' lag"),
+          ("levelling_s", "levelling"),
+          ("gridding_s", "gridding"),
+          ("checks", "checks and scores"))
+
+
+class _Stages:
+    """Times each of :data:`STAGES` into ``times`` and tells ``progress`` (if any) of its
+    start and end (:func:`survey_card`)."""
+
+    def __init__(self, times, progress):
+        self.times, self.progress = times, progress
+        self.labels = dict(STAGES)
+        self.key = None
+
+    def start(self, key):
+        self.key, self.mark = key, _clock()
+        if self.progress is not None:
+            self.progress(self.labels[key], None)
+
+    def end(self):
+        seconds = _clock() - self.mark
+        if self.key.endswith("_s"):
+            self.times[self.key] = seconds
+        if self.progress is not None:
+            self.progress(self.labels[self.key], seconds)
+
+
+def _survey(path, options, progress=None):
     from . import tolles_lawson as tl
     from .diurnal import diurnal_correction, read_base_station
     from .georef import find_lines, georeference, igrf_total
@@ -369,7 +405,8 @@ def _survey(path, options):
     from .scalar import apply_scalar
 
     times = {}
-    mark = _clock()
+    stage = _Stages(times, progress)
+    stage.start("vector_calibration_s")
     # The base station and the truth are read before the long work: their errors come first.
     base = None
     if options.base_station is not None:
@@ -380,11 +417,11 @@ def _survey(path, options):
     run = calibrate_card(path, ref="cesium", method="pso", seed=options.seed)
     if run.parsed.date is None:
         raise SurveyError(f"{run.parsed.name}: no ZDA date in the log: IGRF needs the date")
-    times["vector_calibration_s"] = _clock() - mark
+    stage.end()
     parsed = run.parsed
     notes = list(run.warnings)
 
-    mark = _clock()
+    stage.start("timing_georef_s")
     timing = cesium_times(parsed)
     ces = parsed.cesium
     warnings = []
@@ -411,10 +448,10 @@ def _survey(path, options):
     rate = timing.rate_hz
 
     track = georeference(parsed, t)
-    times["timing_georef_s"] = _clock() - mark
+    stage.end()
 
     # The calibration box and Tolles–Lawson.
-    mark = _clock()
+    stage.start("tolles_lawson_s")
     if options.box is not None:
         box, box_source = tuple(map(float, options.box)), "given"
     else:
@@ -442,10 +479,10 @@ def _survey(path, options):
         except Exception as error:      # noqa: BLE001 - the comparison is optional
             notes.append(f"deinterf could not run on this flight ({type(error).__name__}: "
                          f"{error}); left out of the comparison")
-    times["tolles_lawson_s"] = _clock() - mark
+    stage.end()
 
     # Georeferenced anomaly: IGRF, diurnal.
-    mark = _clock()
+    stage.start("igrf_diurnal_s")
     date = parsed.date
     if date is None:
         raise SurveyError(f"{parsed.name}: no ZDA date in the log: IGRF needs the date")
@@ -456,10 +493,10 @@ def _survey(path, options):
         epoch = _dt.datetime(date.year, date.month, date.day, tzinfo=_dt.timezone.utc)
         diurnal = diurnal_correction(base, epoch, t, max_gap_s=options.max_base_gap_s)
         anomaly = anomaly - diurnal
-    times["igrf_diurnal_s"] = _clock() - mark
+    stage.end()
 
     # Lines, the lag correction, levelling, grid.
-    mark = _clock()
+    stage.start("lag_s")
     lines = find_lines(t, track.north, track.east)
     if options.lag_s is None:
         lag, lag_table = estimate_lag(parsed, t, lines, anomaly, track.origin)
@@ -490,8 +527,8 @@ def _survey(path, options):
         igrf = igrf_total(date, track.lat, track.lon, track.alt)
         anomaly = anomaly - igrf
         lines = find_lines(t, track.north, track.east)
-    times["lag_s"] = _clock() - mark
-    mark = _clock()
+    stage.end()
+    stage.start("levelling_s")
     cross = crossovers(lines, t, track.north, track.east, anomaly)
     if cross:
         levelling = level(lines, t, anomaly, cross, order=options.level_order)
@@ -506,8 +543,8 @@ def _survey(path, options):
         notes.append("no tie line crosses the survey lines: the map is not levelled"
                      + (" (the lag is not corrected either)" if options.lag_s is None else ""))
     levelled = levelling.values
-    times["levelling_s"] = _clock() - mark
-    mark = _clock()
+    stage.end()
+    stage.start("gridding_s")
     on = np.zeros(len(t), bool)
     for line in lines:
         on |= (t >= line.start) & (t <= line.end)
@@ -516,7 +553,8 @@ def _survey(path, options):
         _check_spacing(options.spacing_m, track.north[on], track.east[on], warnings)
     grid = grid_anomaly(track.north[on], track.east[on], levelled[on],
                         spacing_m=options.spacing_m, method=options.grid_method)
-    times["gridding_s"] = _clock() - mark
+    stage.end()
+    stage.start("checks")
     lag_record = {"lag_s": lag, "source": lag_source, "scan": lag_table}
     result = SurveyResult(
         log_name=parsed.name, date=date, options=options, timing=timing, t=t, raw=raw,
@@ -530,6 +568,7 @@ def _survey(path, options):
         _check_truth_flight(truth, options.truth, result)
         result.scores = score_against_truth(result, options.truth)
         result.warnings += _truth_misfit(result.scores)
+    stage.end()
     return result
 
 

@@ -10,6 +10,10 @@ them beside the card image):
                         model, noise floor, phases), ``attitude.csv`` the attitude
 ``simulation.json``     backend, clock, simulated and wall seconds, the front end's
                         counters, the backend's own figures
+
+Each simulation on an RTL backend keeps the rate it ran at (simulated clock cycles per
+wall-clock second) in ``rates.json`` in the build folder (``--build-dir``, by default
+``build/sim``); the next run's estimate is made from it: a rate measured on this machine.
 ``report/``             (run) the calibration report, papers.md, PNGs, summary.json
 """
 
@@ -33,6 +37,10 @@ DEFAULT_CLUSTER_BYTES = 4096
 #: The built-in survey scenario is 800 s; an hour of flight is about 70 minutes on
 #: Verilator and days on Icarus.
 DEFAULT_MAX_SECONDS = 1200.0
+#: The build folder's record of the rates measured here (module docstring).
+RATES_FILE = "rates.json"
+#: Runs shorter than this (wall-clock seconds) are not timed into RATES_FILE.
+MIN_TIMED_S = 1.0
 
 
 class RunError(Exception):
@@ -59,19 +67,81 @@ def _duration(seconds):
     return f"{max(seconds, 1):.0f} s"
 
 
-def run_size(scenario, backend=None):
+def run_size(scenario, backend=None, build_dir=None):
     """A run's size before anything is built: (simulated seconds, simulated clock cycles,
-    wall-clock seconds on ``backend`` or None where no rate is known)."""
+    wall-clock seconds on ``backend`` or None where no rate is known). The rate is the one
+    measured here by the last run with ``build_dir`` (:func:`measured_rate`), or without
+    one the bench machine's (:data:`~maglog.sim.runners.system.CLOCKS_PER_SECOND`)."""
     from ..sim.runners.system import CLOCKS_PER_SECOND
     seconds = scenario.run_seconds()
     cycles = seconds * scenario.clk_freq
-    rate = CLOCKS_PER_SECOND.get(backend)
+    measured = measured_rate(build_dir, backend) if build_dir is not None else None
+    rate = measured[0] if measured else CLOCKS_PER_SECOND.get(backend)
     return seconds, cycles, (cycles / rate if rate else None)
 
 
-def load(path, *, max_seconds=None, backend=None):
+def measured_rate(build_dir, backend):
+    """(simulated clock cycles per second, when) that the last run on ``backend`` with
+    ``build_dir`` measured on this machine, or None (none yet, or unreadable)."""
+    import math
+    try:
+        entry = json.loads((Path(build_dir) / RATES_FILE).read_text())[backend]
+        rate = float(entry["cycles_per_s"])
+        when = str(entry.get("measured", "?"))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return (rate, when) if math.isfinite(rate) and rate > 0 else None
+
+
+def record_rate(build_dir, backend, cycles, wall_s):
+    """Keep the rate a run measured (:data:`RATES_FILE`) for the next estimate; a run too
+    short to time, the model backend or a build folder that cannot be written keeps
+    nothing."""
+    import datetime
+    if backend == "model" or not wall_s or wall_s < MIN_TIMED_S:
+        return
+    path = Path(build_dir) / RATES_FILE
+    try:
+        rates = json.loads(path.read_text())
+        if not isinstance(rates, dict):
+            rates = {}
+    except (OSError, ValueError):
+        rates = {}
+    rates[backend] = {"cycles_per_s": cycles / wall_s, "cycles": cycles, "wall_s": wall_s,
+                      "measured": datetime.datetime.now(datetime.timezone.utc)
+                      .isoformat(timespec="seconds")}
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(rates, indent=1) + "\n")
+    except OSError:
+        pass
+
+
+def _estimate(system, backend, build_dir):
+    """What simulate() says of the time a run will take: from the rate measured here by
+    the last run, or what stands in for it."""
+    from ..sim.runners.system import CLOCKS_PER_SECOND
+    if backend == "model":
+        return ""
+    cycles = system.until * system.clk_freq
+    build = " (the run only: a Verilator build, once per design, comes first)" \
+        if backend == "verilator" else ""
+    measured = measured_rate(build_dir, backend)
+    if measured:
+        return (f"; estimate {_duration(cycles / measured[0])} at {measured[0]:.3g} cycles/s "
+                f"measured here ({Path(build_dir) / RATES_FILE}, {measured[1]}){build}")
+    if backend == "verilator":
+        return ("; no rate measured on this machine yet: the progress line gives the time "
+                "left from the simulator's own rate")
+    rate = CLOCKS_PER_SECOND[backend]
+    return (f"; about {_duration(cycles / rate)} at the {rate:.3g} cycles/s of the project's "
+            "bench machine (no rate measured here yet; this run's is kept for the next)")
+
+
+def load(path, *, max_seconds=None, backend=None, build_dir=None):
     """The scenario at ``path`` (None: the built-in default), built; RunError if bad, or
-    (with ``max_seconds``) if its run is estimated to be longer than that."""
+    (with ``max_seconds``) if its run is estimated to be longer than that (``build_dir``:
+    see :func:`run_size`)."""
     from ..sim.stimulus.config import MAX_SCENARIO_S, ScenarioError, load_scenario
     try:
         scenario = load_scenario(path)
@@ -79,8 +149,8 @@ def load(path, *, max_seconds=None, backend=None):
         raise RunError(str(error)) from None
     except OSError as error:
         raise RunError(f"{path}: {error.strerror or error}") from None
-    seconds, cycles, wall = run_size(scenario, backend)
-    on = f", ~{_duration(wall)} on {backend}" if wall else ""
+    seconds, cycles, wall = run_size(scenario, backend, build_dir)
+    on = f", ~{_duration(wall)} on {backend}" if wall and backend != "model" else ""
     if max_seconds is not None and seconds > max_seconds:
         raise RunError(f"{scenario.source}: this run needs about {seconds:,.0f} s of simulated "
                        f"flight ({cycles:.3g} clock cycles{on}), more than --max-seconds "
@@ -103,7 +173,7 @@ def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD
     ``backend`` into a fresh card image at ``card_path``; write the truth and
     simulation.json beside it. Returns the :class:`~maglog.sim.runners.result.SystemResult`."""
     from ..sim.models.card_image import CardImage
-    from ..sim.runners.system import BackendUnavailable, estimate_seconds, run_system
+    from ..sim.runners.system import BackendUnavailable, run_system
     from ..sim.backends.fast import FastBuildError, FastSimulationError
     from ..sw.fat32 import FatError, format_image
     _quiet_amaranth()
@@ -119,10 +189,8 @@ def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD
     image = CardImage.load(card_path)
     stimulus.write_truth(folder)
     system = stimulus.system
-    estimate = estimate_seconds(system, backend)
     _say(f"simulating {system.until:.1f} s of flight at {system.clk_freq / 1e6:g} MHz on "
-         f"{backend}" + (f" (about {estimate / 60:.0f} min)" if estimate and estimate > 120
-                         else ""))
+         f"{backend}" + _estimate(system, backend, build_dir))
     try:
         result = run_system(system, image, backend=backend, build_dir=build_dir,
                             busy_spikes=stimulus.card.get("busy_spikes", ()),
@@ -130,6 +198,7 @@ def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD
     except (BackendUnavailable, FastBuildError, FastSimulationError, ValueError) as error:
         raise RunError(str(error)) from None
     image.save(card_path)
+    record_rate(build_dir, backend, system.until * system.clk_freq, result.wall_seconds)
     record = {"backend": result.backend, "clk_freq_hz": system.clk_freq,
               "simulated_s": system.until, "wall_s": result.wall_seconds,
               "real_time_factor": (system.until / result.wall_seconds
@@ -158,7 +227,8 @@ def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers
     out = Path(out_dir)
     started = time.perf_counter()
     _say("[1/4] building the scenario")
-    stimulus = load(scenario_path, max_seconds=max_seconds, backend=backend)
+    stimulus = load(scenario_path, max_seconds=max_seconds, backend=backend,
+                    build_dir=build_dir)
     _say(f"[2/4] the logger's RTL on {backend}")
     card = out / "card.img"
     result = simulate(stimulus, card, backend=backend, build_dir=build_dir,

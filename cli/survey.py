@@ -11,6 +11,7 @@ import argparse
 import json
 import re
 import sys
+import time
 from pathlib import Path
 
 __all__ = ["register"]
@@ -157,6 +158,56 @@ def _row(record):
             f"{record['wall_s']:.0f}"]
 
 
+class _StageLines:
+    """A job's stages on ``stream``, one line each with its time. On a terminal the line is
+    written as the stage starts and its time added when it ends; elsewhere (a log, a pipe)
+    it is written whole as the stage ends."""
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        self.open = False
+
+    def __call__(self, label, seconds):
+        if seconds is None:
+            if self.tty:
+                self._write(f"survey: {label} ... ")
+                self.open = True
+            return
+        if self.open:
+            self._write(f"{seconds:.1f} s\n")
+        else:
+            self._write(f"survey: {label}: {seconds:.1f} s\n")
+        self.open = False
+
+    def close(self):
+        """End a line left open by a stage that failed."""
+        if self.open:
+            self._write("\n")
+            self.open = False
+
+    def _write(self, text):
+        self.stream.write(text)
+        self.stream.flush()
+
+
+def _job_lines(started):
+    """``run_batch``'s ``on_done``: a line per finished job, with the time left at the rate
+    the jobs have finished so far."""
+    from .run import _duration
+
+    def done_line(record, done, total):
+        elapsed = time.perf_counter() - started
+        line = (f"survey: {done}/{total} jobs done ({record['name']} "
+                f"{'ok' if record['ok'] else 'failed'} in {record.get('wall_s', 0):.0f} s); "
+                f"{elapsed:.0f} s so far")
+        if done < total:
+            line += (f", about {_duration(elapsed / done * (total - done))} left at "
+                     f"{elapsed / done:.0f} s a job")
+        print(line, file=sys.stderr, flush=True)
+    return done_line
+
+
 def _cmd_survey(args):
     from ..calib.batch import run_batch
     from ..calib.survey_errors import SurveyError
@@ -168,12 +219,21 @@ def _cmd_survey(args):
     where = ("in this process" if serial else
              f"on the Dask scheduler {args.scheduler}" if args.scheduler else
              f"on a local Dask cluster of {args.workers} workers")
-    _progress(f"survey: {len(jobs)} job{'s' * (len(jobs) != 1)} {where}")
+    stages = None
+    if not args.quiet:
+        _progress(f"survey: {len(jobs)} job{'s' * (len(jobs) != 1)} {where}")
+        # One job: its stages; several: a line per job as it finishes.
+        stages = _StageLines(sys.stderr) if len(jobs) == 1 else None
     try:
         records = run_batch(jobs, scheduler=args.scheduler, workers=args.workers,
-                            serial=serial)
+                            serial=serial, stages=stages,
+                            on_done=(_job_lines(time.perf_counter())
+                                     if len(jobs) > 1 and not args.quiet else None))
     except SurveyError as error:
         raise CliError(str(error)) from None
+    finally:
+        if stages is not None:
+            stages.close()
     if len(jobs) > 1:
         (out / "batch.json").write_text(json.dumps(
             {"jobs": records, "where": where}, indent=1, default=str) + "\n")
@@ -267,5 +327,8 @@ def register(commands):
                              "cluster")
     survey.add_argument("--serial", action="store_true",
                         help="run the jobs one after another in this process (no Dask)")
+    survey.add_argument("--quiet", action="store_true",
+                        help="no progress lines (one job: each stage and its time; several: "
+                             "each job as it finishes, with the time left)")
     survey.set_defaults(func=_cmd_survey)
     return survey

@@ -149,11 +149,33 @@ def _logger_for(scenario, chip, ring_capacity):
                   ring_capacity=ring_capacity, chip=chip)
 
 
+#: Where build_harness keeps the time its last build took on this machine (in the build
+#: folder), for the next build's estimate.
+BUILD_TIME_FILE = "verilator-build.json"
+
+
+def last_build_seconds(build_dir):
+    """Wall-clock seconds the last harness build under ``build_dir`` took, or None."""
+    import json
+    import math
+    try:
+        seconds = float(json.loads((Path(build_dir) / BUILD_TIME_FILE).read_text())["seconds"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return seconds if math.isfinite(seconds) and seconds > 0 else None
+
+
+def _duration(seconds):
+    return f"{seconds / 60:.1f} min" if seconds >= 90 else f"{seconds:.0f} s"
+
+
 def build_harness(logger, chip, build_dir, *, log=None):
     """The harness's shared library for ``logger`` (a :class:`~maglog.hw.top.Logger` built
     for the SDRAM ``chip``),
     built under ``build_dir`` once per design and harness source (the folder is named
-    after their hash). Returns its path. Raises FastBuildError saying what failed."""
+    after their hash). Returns its path. Raises FastBuildError saying what failed.
+    ``log`` hears one line as a build starts (with the time the last build here took) and
+    one as it ends (with its time, kept in :data:`BUILD_TIME_FILE`)."""
     from ...hw.top import generate_verilog
     from .cocotb import (simulator_environment, verilator_bin_dir,
                                   verilator_waiver_args)
@@ -190,10 +212,14 @@ def build_harness(logger, chip, build_dir, *, log=None):
             "-I", str(root / "include"), "-I", str(root / "include" / "vltstd"),
             "fast_harness.cpp", "obj/libVmaglog_fast.a", "obj/libverilated.a", "-pthread",
             "-o", "libmaglog_fast.so"]
+    last = last_build_seconds(build_dir)
+    if log:
+        log("building the Verilator model of the logger (once per design; "
+            + (f"the last build here took {_duration(last)}" if last else
+               "no build timed here yet: a few minutes on a slow machine") + ") ...")
+    started = time.perf_counter()
     with simulator_environment("verilator"):
         for command in (verilate, link):
-            if log:
-                log(f"building the fast harness: {command[0]} ...")
             done = subprocess.run(command, cwd=staging, capture_output=True, text=True)
             if done.returncode != 0:
                 tail = "\n".join((done.stdout + done.stderr).splitlines()[-15:])
@@ -202,6 +228,14 @@ def build_harness(logger, chip, build_dir, *, log=None):
     folder.parent.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(folder, ignore_errors=True)
     staging.rename(folder)
+    seconds = time.perf_counter() - started
+    try:
+        import json
+        (Path(build_dir) / BUILD_TIME_FILE).write_text(json.dumps({"seconds": seconds}) + "\n")
+    except OSError:
+        pass
+    if log:
+        log(f"built the Verilator model in {_duration(seconds)} ({folder})")
     return library
 
 

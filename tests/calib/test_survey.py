@@ -611,3 +611,18 @@ def test_a_compensation_that_removes_nothing_is_warned(flight):
     held = sv.survey_card(flight["log"], sv.SurveyOptions(ridge=1e6, compare_deinterf=False))
     assert any(w.startswith("the compensation removed next to nothing") for w in
                held.warnings), held.warnings
+
+
+def test_cli_says_each_stage_with_its_time(flight, tmp_path, capsys):
+    """Issue 24: a survey says each stage as it ends, with its time, in order (a log's
+    lines; a terminal's: tests/cli/test_progress.py); --quiet says none."""
+    from maglog.calib.batch import WRITE
+    argv = [str(flight["log"]), "--no-deinterf", "--lag", "0.25"]
+    status, out, err = _survey_cli(argv + ["-o", str(tmp_path / "out")], capsys)
+    assert status == 0, err
+    labels = [label for _, label in sv.STAGES] + [WRITE]
+    said = [line for line in err.splitlines() if line.startswith("survey: ")][1:]
+    assert [line.rsplit(": ", 1)[0] for line in said] == [f"survey: {x}" for x in labels]
+    assert all(re.fullmatch(r"\d+\.\d s", line.rsplit(": ", 1)[1]) for line in said), said
+    status, out, err = _survey_cli(argv + ["-o", str(tmp_path / "quiet"), "--quiet"], capsys)
+    assert status == 0 and err == "", err
