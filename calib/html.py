@@ -91,6 +91,7 @@ footer { margin-top: 3rem; padding-top: .8rem; border-top: 1px solid var(--rule)
     display: block; }
   table.verdicts tr { border: 1px solid var(--rule); margin: 0 0 .6rem; }
   table.verdicts td { border: none; }
+  table.verdicts td:last-child::before { content: "tolerance: "; color: var(--muted); }
 }
 @media print {
   @page { margin: 16mm 14mm; }

@@ -14,7 +14,11 @@ them beside the card image):
 Each simulation on an RTL backend keeps the rate it ran at (simulated clock cycles per
 wall-clock second) in ``rates.json`` in the build folder (``--build-dir``, by default
 ``build/sim``); the next run's estimate is made from it: a rate measured on this machine.
-``report/``             (run) the calibration report, papers.md, PNGs, summary.json
+``report/``             (run) report.html, the one page to read and share (verdicts,
+                        calibration, the papers' comparison, every figure:
+                        cli/report_html.py), and what it is made from: summary.json and
+                        summary.txt (the verdicts), parameters.json and report.md (the
+                        calibration), papers.json and papers.md, the PNGs
 """
 
 import json
