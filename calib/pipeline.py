@@ -813,69 +813,82 @@ def _allan_dict(allan):
 
 
 def _plots(run, out, staged, allan):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plotting import WIDE, NARROW, figure, log_time_axis, plain_log_axis, save
 
     files = {}
 
-    def save(fig, key, title):
-        fig.axes[0].set_title(title)
-        # Fixed margins: tight_layout drew every figure twice (a third of a report's time).
-        width, height = fig.get_size_inches()
-        fig.subplots_adjust(left=0.9 / width, right=1 - 0.25 / width, bottom=0.6 / height,
-                            top=1 - 0.4 / height)
+    def done(plt, fig, key, title):
+        fig.suptitle(title)
         files[key] = out / f"{key}.png"
-        try:
-            fig.savefig(_stage(staged, files[key]), dpi=110, format="png")
-        finally:
-            plt.close(fig)
+        save(plt, fig, _stage(staged, files[key]))
 
+    timed = bool(np.all(np.isfinite(run.parsed.mag.t)))
+    x, time_label = log_time_axis(run.t, timed)
     raw = np.linalg.norm(run.b, axis=1)
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(run.t, raw, lw=0.6, label="raw |B|")
-    ax.plot(run.t, run.calibrated, lw=0.6, label="compensated |B|")
-    ax.plot(run.t, run.r, lw=1.0, label="reference", color="k")
-    ax.set_xlabel("time (s)")
+    plt, fig, (ax, low) = figure(WIDE, 2, height_ratios=(2, 1))
+    ax.plot(x, raw, lw=0.6, color="tab:blue", label="raw |B|")
+    ax.plot(x, run.calibrated, lw=1.4, color="tab:orange", label="compensated |B|")
+    # The reference on top, thin and dashed: the compensated trace shows beside it.
+    ax.plot(x, run.r, lw=0.9, ls="--", color="k", label=f"reference ({run.reference})",
+            zorder=3)
     ax.set_ylabel("total field (nT)")
-    ax.legend()
-    save(fig, "figure7", "Total field before and after calibration")
+    ax.legend(loc="upper right", fontsize="small")
+    rms = float(np.sqrt(np.mean(run.residual ** 2)))
+    low.plot(x, run.residual, lw=0.5, color="tab:orange")
+    low.axhline(0.0, color="k", lw=0.6)
+    low.set_ylabel("compensated −\nreference (nT)")
+    low.set_title(f"compensated |B| − reference: {rms:.2f} nT RMS", fontsize="medium")
+    low.set_xlabel(time_label)
+    done(plt, fig, "figure7", "Total field before and after calibration")
 
     unit = run.b - run.b.mean(axis=0)
     unit /= np.linalg.norm(unit, axis=1)[:, None]
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    plt, fig, ax = figure(NARROW)
     ax.scatter(np.degrees(np.arctan2(unit[:, 1], unit[:, 0])),
                np.degrees(np.arcsin(np.clip(unit[:, 2], -1, 1))), s=1)
     ax.set_xlabel("azimuth of the field in the sensor frame (deg)")
-    ax.set_ylabel("elevation (deg)")
-    save(fig, "coverage", "Attitude coverage")
+    ax.set_ylabel("elevation of the field (deg)")
+    done(plt, fig, "coverage", "Attitude coverage")
 
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.hist(run.residual, bins=80)
-    ax.set_xlabel("compensated |B| - reference (nT)")
-    save(fig, "residuals", "Residuals")
+    plt, fig, ax = figure(NARROW)
+    _, edges, _ = ax.hist(run.residual, bins=80)
+    ax.set_xlabel("compensated |B| − reference (nT)")
+    ax.set_ylabel(f"samples per {edges[1] - edges[0]:.2g} nT bin")
+    done(plt, fig, "residuals", f"Residuals: {rms:.2f} nT RMS, {len(run.residual)} samples")
 
     if allan is not None:
-        fig, ax = plt.subplots(figsize=(6, 3.5))
+        plt, fig, ax = figure(NARROW)
         ax.errorbar(allan.taus, allan.deviation, yerr=allan.error, lw=0.8, elinewidth=0.5)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("tau (s)")
+        plain_log_axis(ax)
+        ax.set_xlabel("averaging time τ (s)")
         ax.set_ylabel("Allan deviation (nT)")
-        save(fig, "allan", "Allan deviation of the residual")
+        done(plt, fig, "allan", "Allan deviation of the residual")
 
     before, after = run.heading.errors() if run.heading is not None else (None, None)
     if before is not None:
-        fig, ax = plt.subplots(figsize=(9, 3.5))
-        ax.plot(run.t, before, lw=0.6, label="before alignment")
-        if run.heading.alignment is not None:
-            ax.plot(run.t, after, lw=0.6, label="after alignment to the course over ground")
-        for leg in run.heading.legs:
-            ax.axvspan(leg.start, leg.end, color="0.9", zorder=0)
-        ax.set_xlabel("time (s); straight, level legs shaded")
+        plt, fig, ax = figure(WIDE)
+        aligned = run.heading.alignment
+        # An offset of a fraction of a degree puts one trace on the other: the one before
+        # the alignment wide below, the one after thin on top, so that both show.
+        ax.plot(x, before, lw=1.4 if aligned is not None else 0.6, color="tab:blue",
+                label="before alignment")
+        if aligned is not None:
+            ax.plot(x, after, lw=0.5, color="tab:orange",
+                    label=f"after alignment to the course over ground (offset "
+                          f"{aligned.offset:+.2f}°)")
+        origin = run.t[0] - x[0] if len(x) else 0.0
+        for k, leg in enumerate(run.heading.legs if timed else ()):
+            ax.axvspan(leg.start - origin, leg.end - origin, color="0.85", zorder=0,
+                       label="straight, level legs" if k == 0 else None)
+        ax.set_xlabel(time_label)
         ax.set_ylabel("heading error (deg)")
-        ax.legend()
-        save(fig, "heading_error", "Heading from the calibrated field against the attitude")
+        ax.legend(loc="upper right", fontsize="small")
+        title = "Heading from the calibrated field against the attitude"
+        if not run.heading.legs:
+            title += " (no straight, level leg found)"
+        done(plt, fig, "heading_error", title)
     return files
 
 

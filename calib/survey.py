@@ -1189,56 +1189,64 @@ def _write_samples(result, path):
                     f"{line_of[i] if on[i] else ''}\n")
 
 
-def _figure():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
-
-
 def _plot_compensation(result, path):
+    from .plotting import WIDE, figure, save
     from .tolles_lawson import bandpass
-    plt = _figure()
     box = (result.t >= result.box[0]) & (result.t <= result.box[1])
     t = result.t[box] - result.box[0]
     rate, band = result.timing.rate_hz, result.tl.band
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(t, bandpass(result.raw[box], rate, band), lw=0.7, label="uncompensated")
-    if result.deinterf is not None:
-        ax.plot(t, bandpass(result.deinterf["compensated"][box], rate, band), lw=0.7,
-                label="deinterf")
-    ax.plot(t, bandpass(result.compensated[box], rate, band), lw=0.9,
-            label=f"maglog TL{result.tl.terms}", color="k")
-    ax.set_xlabel(f"seconds into the calibration box (from {_tod(result.box[0])} UTC)")
-    ax.set_ylabel(f"band-passed total field, {band[0]:.2g}-{band[1]:.2g} Hz (nT)")
-    ax.set_title("Tolles–Lawson compensation in the calibration box")
-    ax.legend()
-    fig.savefig(path, dpi=110, format="png")
-    plt.close(fig)
+    ours = bandpass(result.compensated[box], rate, band)
+    theirs = (bandpass(result.deinterf["compensated"][box], rate, band)
+              if result.deinterf is not None else None)
+    name = f"maglog TL{result.tl.terms}"
+    # Two panels: at the uncompensated signal's scale the compensated traces are a flat
+    # line on top of each other; the lower panel zooms on them, ours wide and light below,
+    # deinterf's thin and dashed on top, so that each shows where they agree.
+    plt, fig, (ax, low) = figure(WIDE, 2, height_ratios=(3, 2))
+    ax.plot(t, bandpass(result.raw[box], rate, band), lw=0.7, color="tab:blue",
+            label="uncompensated")
+    ax.plot(t, ours, lw=0.9, color="k", label=name)
+    ax.set_ylabel("band-passed\ntotal field (nT)")
+    ax.legend(loc="upper right", fontsize="small")
+    ax.set_title("uncompensated against compensated", fontsize="medium")
+    low.plot(t, ours, lw=2.2, color="0.6", label=f"{name}: {np.sqrt(np.mean(ours ** 2)):.3f} nT RMS")
+    if theirs is not None:
+        low.plot(t, theirs, lw=0.8, ls="--", color="tab:orange", zorder=3,
+                 label=f"deinterf TL{result.tl.terms}: {np.sqrt(np.mean(theirs ** 2)):.3f} nT "
+                       f"RMS; differs from ours by "
+                       f"{np.sqrt(np.mean((theirs - ours) ** 2)):.3f} nT RMS")
+    low.set_ylabel("compensated,\nzoomed (nT)")
+    low.set_title("compensated only" + (": maglog and deinterf" if theirs is not None else ""),
+                  fontsize="medium")
+    low.legend(loc="upper right", fontsize="small")
+    low.set_xlabel(f"seconds into the calibration box (from {_tod(result.box[0])} UTC)")
+    fig.suptitle(f"Tolles–Lawson compensation in the calibration box "
+                 f"(band-passed {band[0]:.2g}-{band[1]:.2g} Hz)")
+    save(plt, fig, path)
 
 
 def _plot_levelling(result, path):
-    plt = _figure()
+    from .plotting import NARROW, figure, save
     lev = result.levelling.as_dict()
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    plt, fig, ax = figure(NARROW)
     before = np.asarray([c[-1] for c in result.levelling.crossovers_before], float) \
         if hasattr(result.levelling, "crossovers_before") else None
     after = np.asarray([c[-1] for c in result.levelling.crossovers_after], float) \
         if hasattr(result.levelling, "crossovers_after") else None
     if before is not None and before.size:
-        ax.plot(before, "o", label="before levelling")
+        ax.plot(np.arange(1, before.size + 1), before, "o", label="before levelling")
     if after is not None and after.size:
-        ax.plot(after, "x", label="after levelling")
-    ax.set_xlabel("crossover")
+        ax.plot(np.arange(1, after.size + 1), after, "x", label="after levelling")
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_xlabel("crossover number (one per line × tie line crossing)")
     ax.set_ylabel("line minus tie line (nT)")
     if lev["crossovers"]:
-        ax.set_title(f"Crossovers: RMS {lev['rms_before_nT']:.2f} -> "
-                     f"{lev['rms_after_nT']:.2f} nT")
-        ax.legend()
+        ax.set_title(f"Crossovers: RMS {lev['rms_before_nT']:.2f} nT before levelling, "
+                     f"{lev['rms_after_nT']:.2f} nT after")
+        ax.legend(loc="upper right", fontsize="small")
     else:
         ax.set_title("No crossovers: not levelled")
-    fig.savefig(path, dpi=110, format="png")
-    plt.close(fig)
+    save(plt, fig, path)
 
 
 def _report_lines(result, figures):
@@ -1290,7 +1298,7 @@ def _report_lines(result, figures):
     out.append("")
     if result.deinterf is not None:
         settings = result.deinterf.get("settings", {})
-        text = "; ".join(f"{k.replace('_', ' ')} {v}" for k, v in settings.items()) \
+        text = "; ".join(_setting_text(k, v) for k, v in settings.items()) \
             if isinstance(settings, dict) else str(settings)
         out += [f"deinterf ({result.deinterf.get('version', '')}) on the same samples: "
                 f"{text}.", ""]
@@ -1323,9 +1331,8 @@ def _report_lines(result, figures):
     pk = figures["peak"]
     out += ["## Map", "", "![map](map.png)", "",
             f"Anomaly along the lines {figures['anomaly_nT']['min']:.1f} to "
-            f"{figures['anomaly_nT']['max']:.1f} nT; grid: "
-            + ", ".join(f"{k} {v}" for k, v in figures["grid"].items()
-                        if not isinstance(v, (list, dict))) + ".",
+            f"{figures['anomaly_nT']['max']:.1f} nT.", "",
+            *_grid_lines(figures["grid"], result.track.origin),
             f"Largest |anomaly| on the grid: {pk['amplitude_nT']:.1f} nT at "
             f"{pk['northing']:.0f} m north, {pk['easting']:.0f} m east of the first fix.", ""]
     if scores:
@@ -1339,7 +1346,60 @@ def _report_lines(result, figures):
                 f"nodes (offset {scores['grid_offset_nT']:.2f} nT)",
                 f"- peak (above the grid's offset): {p['recovered_nT']:.1f} nT recovered against {p['true_nT']:.1f} nT "
                 f"true (ratio {p['amplitude_ratio']:.3f}), {p['distance_m']:.1f} m apart", ""]
-    out += ["## Files", "", "anomaly.nc (NetCDF, UTM), anomaly.tif (GeoTIFF, UTM), "
-            "samples.csv (every cesium sample through each step), survey.json (these "
-            "figures).", ""]
+    utm = _utm_name(result.track.origin)
+    out += ["## Files", "", f"anomaly.nc (NetCDF) and anomaly.tif (GeoTIFF): the grid "
+            f"resampled onto {utm}; map.png, samples.csv (every cesium sample through each "
+            "step: latitude and longitude in WGS 84, north and east in local metres) and "
+            "survey.json (these figures): local metres from the first fix.", ""]
     return out
+
+
+_UNITS = {"_hz": "Hz", "_m": "m", "_s": "s", "_nT": "nT", "_deg": "°"}
+
+
+def _setting_text(key, value):
+    """One setting as words: ``band_hz [0.1, 0.6]`` reads "band 0.1-0.6 Hz"."""
+    unit = next((u for suffix, u in _UNITS.items() if key.endswith(suffix)), "")
+    name = key[:len(key) - len(next(s for s in _UNITS if key.endswith(s)))] if unit else key
+    if isinstance(value, (list, tuple)):
+        value = "-".join(f"{v:g}" if isinstance(v, (int, float)) else str(v) for v in value)
+    elif isinstance(value, float):
+        value = f"{value:g}"
+    return f"{name.replace('_', ' ')} {value}" + (f" {unit}" if unit else "")
+
+
+def _utm_name(origin):
+    """The UTM zone the products are written in, e.g. "WGS 84 / UTM zone 32N (EPSG:32632)"."""
+    from .gridding import utm_epsg
+    try:
+        epsg = utm_epsg(*origin)
+    except SurveyError:
+        return "UTM (no zone at the first fix)"
+    zone, hemisphere = epsg % 100, "N" if epsg < 32700 else "S"
+    return f"WGS 84 / UTM zone {zone}{hemisphere} (EPSG:{epsg})"
+
+
+def _grid_lines(grid, origin):
+    """The grid's description (:func:`~maglog.calib.gridding.grid_summary`) as sentences
+    with units: how it was made, how well it fits, and which coordinates it is in."""
+    method = {"spline": "verde's bi-harmonic spline",
+              "eqs": "harmonica's equivalent sources"}.get(grid.get("method"),
+                                                        str(grid.get("method")))
+    if grid.get("eqs_depth_m") is not None:
+        method += f" at {grid['eqs_depth_m']:.0f} m depth"
+    damping = grid.get("damping")
+    rows, columns = grid.get("shape", (0, 0))
+    lat0, lon0 = origin
+    crs = grid.get("crs", "local")
+    where = (f"local metres north and east of the first fix ({abs(lat0):.5f}° "
+             f"{'N' if lat0 >= 0 else 'S'}, {abs(lon0):.5f}° {'E' if lon0 >= 0 else 'W'}), "
+             "on a flat earth" if crs == "local" else crs)
+    return [f"Grid: {method}, {'undamped' if damping is None else f'damping {damping:.3g}'}, "
+            f"{grid['spacing_m']:.3g} m spacing ({rows} × {columns} nodes), from "
+            f"{grid['n_data']:,} samples reduced to {grid['n_blocks']:,} block medians of "
+            f"{grid['block_m']:.3g} m; lines {grid['line_spacing_m']:.3g} m apart; nodes "
+            f"farther than {grid['mask_m']:.3g} m from a sample blanked "
+            f"({grid['coverage']:.0%} kept); misfit {grid['misfit_rms_nT']:.2f} nT RMS at "
+            "the samples.",
+            f"The grid, the map and the peak below are in {where}; anomaly.nc and "
+            f"anomaly.tif hold it resampled onto {_utm_name(origin)}.", ""]

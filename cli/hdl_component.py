@@ -9,6 +9,7 @@ def _cmd_hdl_component(args):
     from .main import CliError, _os_message
     from .hdl_build import _remove_empty, check_output_folder
     from ..hw.platform.component import write_component
+    from ..hw.arch.units import hertz
     kwargs = {"channels": args.channels, "clk_freq": args.clk_freq,
               "max_frame": args.max_frame, "fifo_depth": args.fifo_depth}
     folder, made = check_output_folder(args.output)     # before the elaboration
@@ -23,7 +24,7 @@ def _cmd_hdl_component(args):
     for path in written:
         print(path)
     print(f"{args.output}: Platform Designer component maglog_logger_avalon "
-          f"({args.clk_freq:g} Hz clock); add the folder to the IP search path")
+          f"({hertz(args.clk_freq)} clock); add the folder to the IP search path")
 
 
 def register(hdl_subparsers):

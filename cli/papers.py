@@ -126,22 +126,15 @@ class PapersResult:
                           "plots": {k: str(v) for k, v in self.plots.items()}, **self.data})
 
 
-def _pyplot():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
+def _figure(size):
+    """(plt, fig, ax): one panel at a report figure's size, dpi and layout."""
+    from ..calib.plotting import figure
+    return figure(size)
 
 
 def _save(plt, fig, path):
-    width, height = fig.get_size_inches()
-    fig.subplots_adjust(left=0.9 / width, right=1 - 0.25 / width, bottom=0.6 / height,
-                        top=1 - 0.4 / height)
-    try:
-        fig.savefig(path, dpi=110, format="png")
-    finally:
-        plt.close(fig)
-    return path
+    from ..calib.plotting import save
+    return save(plt, fig, path)
 
 
 def _matrix_rows(m, fmt):
@@ -230,12 +223,15 @@ def paper_a(run, truth, out_dir):
               "the constant A and b of eq. 1-5, so ours is the hard and soft iron seen as "
               "the aircraft turns.", "",
               "![Figure 7](paper_a_figure7.png)", ""]
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(run.t, raw, lw=0.6, color="tab:green", label="raw |B| (triaxial)")
-    ax.plot(run.t, run.r, lw=2.5, color="tab:red", label="reference (cesium)")
-    ax.plot(run.t, comp, lw=0.6, color="tab:blue", label="compensated |B|")
-    ax.set_xlabel("time (s of day, UTC)")
+    from ..calib.plotting import WIDE, log_time_axis
+    plt, fig, ax = _figure(WIDE)
+    x, time_label = log_time_axis(run.t, bool(np.all(np.isfinite(run.parsed.mag.t))))
+    ax.plot(x, raw, lw=0.6, color="tab:green", label="raw |B| (triaxial)")
+    # The paper's colours; the compensated trace wide below, the reference thin and
+    # dashed on top, so that both show where they coincide.
+    ax.plot(x, comp, lw=2.0, color="tab:blue", label="compensated |B|")
+    ax.plot(x, run.r, lw=0.9, ls="--", color="tab:red", label="reference (cesium)", zorder=3)
+    ax.set_xlabel(time_label)
     ax.set_ylabel("total field (nT)")
     ax.set_title("Paper A, Figure 7 style: the run's data")
     ax.legend(loc="upper right", fontsize=8)
@@ -401,8 +397,8 @@ def paper_b(truth, out_dir, *, seed=0, quick=False):
               f"here a rotation of {rotation:.2f}°), and a noisy compass's single readings "
               "scatter too.", "",
               "![Paper B](paper_b_heading.png)", ""]
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4))
+    from ..calib.plotting import NARROW, plain_log_axis
+    plt, fig, ax = _figure(NARROW)
     plotted = [c for c in curves if np.isfinite(c["mean_error_deg"]).any()]
     for curve in plotted:
         line = ax.errorbar(counts, curve["mean_error_deg"], yerr=curve["std_error_deg"],
@@ -416,6 +412,7 @@ def paper_b(truth, out_dir, *, seed=0, quick=False):
         ax.set_yscale("log")
     else:
         ax.text(0.5, 0.5, "no fit at any count", transform=ax.transAxes, ha="center")
+    plain_log_axis(ax, "both" if plotted else "x")
     ax.set_xlabel("samples per octant")
     ax.set_ylabel("mean heading error (deg)")
     ax.set_title("Paper B, Fig. 5 style: heading error vs samples per octant")
@@ -587,8 +584,8 @@ def paper_c(run, truth, out_dir, *, seed=0, quick=False):
                   f"{ch['single_point.quantisation']:+.1f} % quantisation, "
                   f"{ch['single_point.bias_instability']:+.1f} % bias instability.", ""]
     lines += ["![Paper C](paper_c_allan.png)", ""]
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4))
+    from ..calib.plotting import NARROW, plain_log_axis
+    plt, fig, ax = _figure(NARROW)
     before, after = first
     ax.errorbar(before.taus, before.deviation, yerr=before.error, lw=0.8, elinewidth=0.5,
                 label="before the Kalman filter")
@@ -596,8 +593,10 @@ def paper_c(run, truth, out_dir, *, seed=0, quick=False):
                 label="after")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("tau (s)")
-    ax.set_ylabel("Allan deviation")
+    plain_log_axis(ax)
+    ax.set_xlabel("averaging time τ (s)")
+    # The paper's figures carry no unit: the series is in its units (an HMC5883L's output).
+    ax.set_ylabel("Allan deviation (paper C's units;\nthe paper states none)")
     ax.set_title(f"Paper C: Allan deviation, synthetic series (seed {seed * 1000})")
     ax.legend(fontsize=8)
     plots = {"paper_c_allan": _save(plt, fig, Path(out_dir) / "paper_c_allan.png")}

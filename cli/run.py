@@ -180,6 +180,7 @@ def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD
     from ..sim.runners.system import BackendUnavailable, run_system
     from ..sim.backends.fast import FastBuildError, FastSimulationError
     from ..sw.fat32 import FatError, format_image
+    from ..hw.arch.units import hertz
     _quiet_amaranth()
     card_path = Path(card_path)
     folder = card_path.parent
@@ -193,7 +194,7 @@ def simulate(stimulus, card_path, *, backend, build_dir, card_bytes=DEFAULT_CARD
     image = CardImage.load(card_path)
     stimulus.write_truth(folder)
     system = stimulus.system
-    _say(f"simulating {system.until:.1f} s of flight at {system.clk_freq / 1e6:g} MHz on "
+    _say(f"simulating {system.until:.1f} s of flight at {hertz(system.clk_freq)} on "
          f"{backend}" + _estimate(system, backend, build_dir))
     try:
         result = run_system(system, image, backend=backend, build_dir=build_dir,
@@ -260,7 +261,7 @@ def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers
         paths = {}
     papers = paper_results(run, stimulus.truth, report, seed=seed, quick=quick_papers)
     summary = summarize(stimulus.truth, result.counters, logs, run,
-                        calibration_error=failure)
+                        calibration_error=failure, seed=seed)
     record = summary.as_dict()
     record["papers"] = papers.as_dict()
     record["simulation"] = {"backend": result.backend, "wall_s": result.wall_seconds,

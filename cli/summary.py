@@ -389,14 +389,15 @@ def _parameters(truth, run):
 
 # -- The whole ------------------------------------------------------------------------------
 
-def summarize(truth, counters, logs, run, *, calibration_error=None):
+def summarize(truth, counters, logs, run, *, calibration_error=None, seed=None):
     """Score a run against the scenario's truth (see the module docstring).
 
     ``truth``: the dict of truth.json (version 1); ``counters``: the gateware's counters
     per channel and cause, or None when the backend gives none; ``logs``: ``[(name,
     bytes)]`` read from the card; ``run``: the :class:`~maglog.calib.pipeline.CalibrationRun`,
     or None (or the exception) when the calibration failed; ``calibration_error``: why it
-    failed (an exception or text), said in the summary."""
+    failed (an exception or text), said in the summary; ``seed``: the PSO's and papers'
+    seed (``maglog run --seed``), named in the title beside the scenario's own seed."""
     if not isinstance(truth, dict):
         raise ValueError(f"truth must be the dict of a truth.json of version 1, not "
                          f"{type(truth).__name__}")
@@ -407,7 +408,9 @@ def summarize(truth, counters, logs, run, *, calibration_error=None):
         run, calibration_error = None, run
     if run is not None and not isinstance(run, CalibrationRun):
         raise ValueError(f"run must be a CalibrationRun or None, not {type(run).__name__}")
-    title = f"maglog run: scenario {truth.get('scenario', '?')}, seed {truth.get('seed', '?')}"
+    title = (f"maglog run: scenario {truth.get('scenario', '?')} (scenario seed "
+             f"{truth.get('seed', '?')})" + ("" if seed is None else
+                                            f", PSO and papers' seed {seed} (--seed)"))
     blocks, checks, data = [[title, "=" * len(title)]], [], {}
     lines, found, data["frames"] = _frames(truth, counters)
     blocks.append(lines)

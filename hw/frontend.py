@@ -12,6 +12,7 @@ from .arch import uart as arch_uart
 from .counters import CounterBank, read_signature
 from .frame_filter import ChannelKind, FrameFilter, counters_signature
 from .frame_fifo import FrameByte
+from .arch.units import hertz
 from .soc import csr
 from .uart import UartRx
 
@@ -64,10 +65,10 @@ def divisor_for(clk_freq, baud):
     """The UartRx divisor nearest to ``baud`` at ``clk_freq``, checked against ±1 % error."""
     divisor = round(clk_freq / (arch_uart.OVERSAMPLING * baud))
     if not 1 <= divisor < 1 << DIVISOR_BITS:
-        raise ValueError(f"Baud rate {baud} cannot be reached from a {clk_freq} Hz clock")
+        raise ValueError(f"Baud rate {baud} cannot be reached from a {hertz(clk_freq)} clock")
     error = clk_freq / (arch_uart.OVERSAMPLING * divisor) / baud - 1
     if abs(error) > 0.01:
-        raise ValueError(f"Baud rate {baud} from a {clk_freq} Hz clock is off by "
+        raise ValueError(f"Baud rate {baud} from a {hertz(clk_freq)} clock is off by "
                          f"{error:+.2%}; use a clock that divides better")
     return divisor
 

@@ -6,6 +6,7 @@ from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
 from .arch import sdram as arch
+from .arch.units import hertz
 
 
 __all__ = ["SdramController", "sdram_pins_signature", "request_layout"]
@@ -120,7 +121,7 @@ class SdramController(wiring.Component):
         # Refresh a little early: the request in progress and the precharge come first.
         refresh_every = interval - (t_rp + t_rc + t_wr + 8)
         if refresh_every <= 0:
-            raise ValueError(f"A {self.clk_freq} Hz clock is too slow to refresh "
+            raise ValueError(f"A {hertz(self.clk_freq)} clock is too slow to refresh "
                              f"{chip.name} in time")
 
         pins = self.pins

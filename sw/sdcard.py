@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from ..hw.arch import sd as arch
 from ..hw.arch.sd import DataPhase, ResponseKind
+from ..hw.arch.units import hertz
 from .bus import BusTimeout
 
 
@@ -149,8 +150,8 @@ class SdCardDriver:
         divisor = max(0, -(-int(self.sys_clock_hz) // (2 * int(hz))) - 1)
         limit = (1 << self.regs["clock"].field("divisor").width) - 1
         if divisor > limit:
-            raise ValueError(f"{hz} Hz is below the slowest SD clock of this host "
-                             f"({self.sys_clock_hz / (2 * (limit + 1)):.0f} Hz)")
+            raise ValueError(f"{hertz(hz)} is below the slowest SD clock of this host "
+                             f"({hertz(self.sys_clock_hz / (2 * (limit + 1)))})")
         await self.bus.write(self.regs["clock"].address,
                              self.regs["clock"].encode(divisor=divisor, run=int(run)))
         self._divisor = divisor

@@ -30,6 +30,7 @@ from amaranth.lib.cdc import ResetSynchronizer
 from ..frontend import DEFAULT_CHANNELS
 from .avalon import AvalonLogger
 from .boards import BOARDS
+from ..arch.units import hertz
 
 
 __all__ = ["CPU_MODULE", "CPU_RESET_CLOCKS", "PllConfig", "pll_config", "BoardTop"]
@@ -92,7 +93,7 @@ def pll_config(f_in, f_sys, sdram_phase_ns):
     negative leads) from ``f_in``."""
     ratio = Fraction(f_sys / f_in).limit_denominator(64)
     if float(f_in * ratio) != float(f_sys):
-        raise ValueError(f"{f_sys} Hz is not a ratio of small integers of {f_in} Hz")
+        raise ValueError(f"{hertz(f_sys)} is not a ratio of small integers of {hertz(f_in)}")
     period_ps = 1e12 / f_sys
     if not -period_ps < sdram_phase_ns * 1000 < period_ps:
         raise ValueError(f"SDRAM clock phase {sdram_phase_ns} ns exceeds a period")

@@ -36,6 +36,7 @@ import numpy as np
 
 from ...hw.frame_filter import ChannelKind
 from ...hw.frontend import ChannelConfig, divisor_for
+from ...hw.arch.units import hertz
 from . import sentences
 from .captures import load_capture, shared_data_dir
 from .system import UART_FRAME_BITS, SystemScenario, Timeline
@@ -408,7 +409,7 @@ def build(scenario):
             divisor_for(scenario.clk_freq, channel.baud)
         except ValueError as error:
             raise scenario.error(f"[channels.{name}] baud", f"must be reachable from the "
-                                 f"{scenario.clk_freq:g} Hz clock: {error}") from None
+                                 f"{hertz(scenario.clk_freq)} clock: {error}") from None
     # A first pass gives the flight's length; the arrays reach past the stop press.
     survey = f.survey
     leg_s = 1.875 * survey.leg_length_m / survey.speed_m_s

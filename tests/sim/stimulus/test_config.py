@@ -87,7 +87,7 @@ def test_bad_toml_and_missing_file(tmp_path):
     ("[recording]\nstart_s = 7\n", "[recording] start_s must be before take-off at 6 s "
      "([flight.ground] seconds), not 7.0"),
     ("[channels.gps]\nbaud = 1000000\n", "[channels.gps] baud must be reachable from the "
-     "1.8432e+06 Hz clock"),
+     "1.8432 MHz clock"),
     ("[[faults.noise_burst]]\nchannel = 'mag'\nstart_s = 10\nend_s = 10.2\ncount = 9\n",
      "[[faults.noise_burst]] #1 count must be at most the 4 mag frames the filter would keep "
      "in 10-10.2 s, not 9"),
