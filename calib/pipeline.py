@@ -209,6 +209,8 @@ class CalibrationRun:
             if words is not None and getattr(res, "dop", None) is not None:
                 own = set(words(res.dop, res.determined, res.held))
                 fit = [w for w in fit if w not in own]
+            if self.coverage.verdict != "determined":
+                fit.insert(0, self.coverage.message)
         return list(self.notes) + fit
 
     def summary(self):
@@ -1052,8 +1054,9 @@ def _report_lines(run, summary, files, allan=None):
         lines.append(f"- held out: not scored ({run.held_out_note})")
     lines.insert(2, f"- **verdict: {run.coverage.verdict.upper()}** — {run.coverage.message}")
     lines.append("")
-    if run.warnings:
-        lines += ["## Warnings", ""] + [f"- {warning}" for warning in run.warnings] + [""]
+    others = [w for w in run.warnings if w != run.coverage.message]   # the verdict: above
+    if others:
+        lines += ["## Warnings", ""] + [f"- {warning}" for warning in others] + [""]
     lines += ["## Parameters", ""] + _parameter_lines(run)
     if run.method != "ellipsoid":
         lines += ["Paper's Table 1 form: P = K^-1 and the offset P c (nT):", "",

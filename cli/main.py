@@ -490,7 +490,8 @@ def _cmd_calibrate(args):
         print(f"held out: not scored ({run.held_out_note})")
     print(f"verdict: {run.coverage.verdict.upper()}: {run.coverage.message}")
     for warning in run.warnings:
-        print(f"warning: {warning}")
+        if warning != run.coverage.message:         # the verdict, printed above
+            print(f"warning: {warning}")
     print(f"report: {paths['markdown']}")
     print(f"parameters: {paths['json']}")
 
