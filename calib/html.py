@@ -99,6 +99,10 @@ footer { margin-top: 3rem; padding-top: .8rem; border-top: 1px solid var(--rule)
   body { max-width: none; margin: 0; padding: 0; }
   a { color: inherit; text-decoration: none; }
   .wide { overflow: visible; }
+  table { font-size: 8pt; }
+  th, td { padding: 2px 4px; }
+  td.num, th.num { white-space: normal; }
+  .wide td:first-child { min-width: 0; }
   h2, h3 { break-after: avoid; page-break-after: avoid; }
   tr, .banner { break-inside: avoid; page-break-inside: avoid; }
   figure img { max-height: 120mm; width: auto; }
