@@ -410,6 +410,9 @@ def _cmd_card_format(args):
         raise CliError(f"{path}: exists; formatting replaces it (give --force to do so)")
     if path.is_dir():
         raise CliError(f"{path}: is a folder, not a card image")
+    if path.parent.exists() and not path.parent.is_dir():
+        raise CliError(f"{path.parent}: is a file, not a folder")
+    path.parent.mkdir(parents=True, exist_ok=True)      # as every -o of maglog does
     try:
         plan = format_image(path, args.size, cluster_bytes=args.cluster_size,
                             label=args.label, volume_id=args.volume_id)
