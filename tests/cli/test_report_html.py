@@ -269,3 +269,25 @@ def test_the_run_writes_with_the_umask(run_folder):
     want = 0o666 & ~umask()
     modes = {p.name: p.stat().st_mode & 0o777 for p in run_folder.iterdir()}
     assert set(modes.values()) == {want}, modes
+
+
+def test_a_run_without_calibration_still_gets_its_page(tmp_path):
+    # The calibration failed: no parameters.json, no plots, no papers.md; markup in a
+    # detail is text.
+    report = tmp_path / "report"
+    report.mkdir()
+    checks = [{"name": "log", "status": "fail", "detail": "no <b>log</b> file on the card",
+               "tolerance": "equal bytes"},
+              {"name": "residual", "status": "skip", "detail": "the calibration failed: "
+               "too few samples", "tolerance": ""}]
+    (report / "summary.json").write_text(json.dumps({"ok": False, "failed": ["log"],
+                                                     "checks": checks}))
+    import html5lib
+    ns = "{http://www.w3.org/1999/xhtml}"
+    page = html5lib.HTMLParser(strict=True).parse(write_run_report(report).read_bytes())
+    body = "".join(page.find(f"{ns}body").itertext())
+    assert "FAIL: 1 of 2 checks failed (log). Not checked: residual." in body
+    assert "No calibration: the calibration failed: too few samples." in body
+    assert "no <b>log</b> file on the card" in body and page.find(f".//{ns}b") is None
+    assert all(PAPERS[key]["authors"] in body for key in PAPERS)
+    assert page.find(f".//{ns}img") is None
