@@ -1,7 +1,8 @@
 """Log parser: the text of a ``LOGnnnnn.TXT`` → per-instrument arrays on one time base.
 
-The log holds the kept ``$``-frames verbatim in arrival order (``shared/DESIGN.md``,
-"Formats"): magnetometer ``$PMAG1,SSSSS,±XXXXX.X,±YYYYY.Y,±ZZZZZ.Z*hh``, cesium
+The log holds the kept ``$``-frames verbatim in arrival order (``docs/architecture.md``,
+"What is on the wire and on the card"): magnetometer
+``$PMAG1,SSSSS,±XXXXX.X,±YYYYY.Y,±ZZZZZ.Z*hh``, cesium
 ``$ 49895.131,1249`` / ``$149895.131,0001``, and NMEA GGA, ZDA and VTG of any talker. Line
 ends are CR LF or a bare LF. :func:`parse_log` reads every line, never raises on content,
 and returns a :class:`ParsedLog`; :func:`to_arrays` gives what calibration needs.
@@ -120,7 +121,7 @@ NUMBER = "number"
 BAD_REASONS = (TRUNCATED, BAD_BYTE, UNKNOWN_SENTENCE, CHECKSUM, FIELD_COUNT, NUMBER)
 
 # --- formats ------------------------------------------------------------------------------
-# Ref: shared/DESIGN.md "Formats"; NMEA 0183 v4.11 §5.2 (sentence, checksum), §6.3 (GGA, VTG,
+# Ref: docs/architecture.md and docs/frame-rules.md; NMEA 0183 v4.11 §5.2 (sentence, checksum), §6.3 (GGA, VTG,
 # ZDA fields); Geometrics G-882 manual, RS-232 output.
 
 #: The magnetometer's sequence counter runs 00000..99999 and wraps.

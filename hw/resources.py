@@ -1,6 +1,6 @@
 """Cyclone IV E resource estimates with Yosys: LUT4, flip-flops, M9K and logic depth.
 
-The flow is the project's (shared/TOOLCHAIN.md, "Yosys estimates for Cyclone IV E"):
+The flow (worked out for this project; docs/architecture.md, "On a board"):
 ``synth_intel -family cycloneive`` up to block RAM mapping, ``memory_libmap`` with the M9K
 library beside this module (Yosys's own M9K step fails on Amaranth memories), then the rest
 of ``synth_intel`` from flip-flop RAM mapping to the end of cell mapping. Processes are

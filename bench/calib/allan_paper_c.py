@@ -1,5 +1,5 @@
 """Paper C's Allan analysis (Li, Zhang and Yang: LS-KF compensation of an electronic
-compass; ../shared/PAPERS.md section C) reproduced on synthetic 0.1 s signals whose noise
+compass; docs/papers.md section C) reproduced on synthetic 0.1 s signals whose noise
 terms are known.
 
 The paper: HMC5883L at 0.1 s; X axis before the Kalman filter mean 0.0022, variance

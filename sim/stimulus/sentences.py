@@ -11,7 +11,7 @@ included, with a correct checksum where the format has one:
   (the one source of GPS epochs for the scenarios and the demo streams).
 
 :func:`nmea_sentence` wraps any body as ``$`` body ``*hh`` line end and lets tests force a
-wrong checksum. The formats are those of ``shared/DESIGN.md`` ("Formats").
+wrong checksum. The formats are those of ``docs/architecture.md`` ("What is on the wire and on the card").
 
 Ref: NMEA 0183 v4.10 §5.2 (sentence structure, checksum), §6.3 (GGA, GSA, GSV, RMC, VTG,
 ZDA field layouts).

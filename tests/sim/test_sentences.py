@@ -13,7 +13,7 @@ import pytest
 from maglog.sim.stimulus import sentences
 from maglog.sim.stimulus.sentences import cesium, gga, gsa, gsv, nmea_checksum, nmea_sentence, pmag1, rmc, vtg, zda
 
-# Formats of shared/DESIGN.md ("Formats"), written out as regular expressions.
+# The formats of docs/architecture.md ("What is on the wire and on the card"), written out as regular expressions.
 PMAG_RE = re.compile(
     rb"\$PMAG1,\d{5},[+-]\d{5}\.\d,[+-]\d{5}\.\d,[+-]\d{5}\.\d\*(?P<hh>[0-9A-F]{2})\r\n"
 )
