@@ -74,10 +74,11 @@ def _status_cell(status):
 # -- Sections --------------------------------------------------------------------------------
 
 def _title(summary, truth, simulation, when):
-    scenario = (truth or {}).get("scenario") or "a scenario"
+    scenario = (truth or {}).get("scenario")
     backend = (summary.get("simulation") or {}).get("backend") or \
-        (simulation or {}).get("backend") or "?"
-    title = f"maglog run: scenario {scenario} on the {backend} backend, {when:%Y-%m-%d}"
+        (simulation or {}).get("backend")
+    title = "maglog run" + (f": scenario {scenario}" if scenario else "") + \
+        (f" on the {backend} backend" if backend else "") + f", {when:%Y-%m-%d}"
     facts = [f"run {when:%Y-%m-%d %H:%M} UTC"]
     seed = (summary.get("papers") or {}).get("seed")
     if seed is not None:
