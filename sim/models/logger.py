@@ -6,11 +6,14 @@ unchanged through :attr:`LoggerModel.bus`, a :class:`~maglog.sw.bus.RegisterBus`
 
 What is modelled, and at which grain:
 
-- Serial lines: bytes back to back from each fed burst, ten bit times each; the frame
-  filter's decisions come from the reference filter (sim/models/logger_frontend.py). A kept
-  frame leaves its channel at the stop bit of its line end; channels merge whole frames in
-  that order (ties: lower channel first). The model's receivers always run at the line's
-  rate: the ``ch{k}_divisor`` registers are stored, not applied.
+- Serial lines: bytes back to back from each fed burst, ten bit times each, at the burst's
+  own rate; each channel's receiver samples them at the gateware's divisor after reset, as
+  hw/uart.py does (sim/models/logger_uart.py: a burst off its rate gets the framing errors
+  and resynchronisations the gateware gives it); the frame filter's decisions come from the
+  reference filter (sim/models/logger_frontend.py). A kept frame leaves its channel at the
+  stop bit of its line end; channels merge whole frames in that order (ties: lower channel
+  first). The ``ch{k}_divisor`` registers are stored, not applied: the receivers keep the
+  divisor after reset.
 - Record gate and ring: a frame is gated at its first byte (stored or drained whole), then
   takes :data:`RING_BYTE_CYCLES` per byte into the SDRAM ring (``logger.status.in_frame``
   meanwhile) and is committed at its last; a frame that does not fit is dropped whole.
@@ -48,6 +51,7 @@ from dataclasses import dataclass, field
 from ...hw.arch import frames as arch_frames
 from ...hw.arch import sd as arch_sd
 from ...hw.arch import sdram as arch_sdram
+from ...hw.arch import uart as arch_uart
 from ...hw.arch.frames import COUNTER_NAMES
 from ...hw.frontend import DEFAULT_CHANNELS, ChannelConfig
 from ...hw.top import GPS_CHANNEL, Logger
@@ -231,7 +235,11 @@ class LoggerModel(SocPeripherals):
         self.memory_map = memory_map if memory_map is not None else logger_memory_map(
             channels=self.channels, clk_freq=clk_freq, chip=chip, ring_capacity=ring_capacity,
             max_frame=max_frame, debounce_s=debounce_s, led_stretch_s=led_stretch_s)
-        self._lines = [ChannelLine(k, c.kind, max_frame=max_frame, clk_freq=clk_freq)
+        # Each receiver at the gateware's divisor after reset (hw/frontend.py's
+        # divisor_for: the nearest one to the nominal rate).
+        self._lines = [ChannelLine(k, c.kind, max_frame=max_frame, clk_freq=clk_freq,
+                                   divisor=max(1, round(clk_freq / (arch_uart.OVERSAMPLING
+                                                                    * c.baud))))
                        for k, c in enumerate(self.channels)]
         self.gps_channel = min(GPS_CHANNEL, len(self.channels) - 1)
         self._debounce = max(1, round(debounce_s * clk_freq))
