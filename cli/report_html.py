@@ -139,9 +139,11 @@ def _verdicts(summary):
 def _calibration(parameters, summary, names):
     out = ['<section id="calibration"><h2>Calibration</h2>']
     if parameters is None:
-        why = next((c.get("detail") for c in summary.get("checks") or []
-                    if c.get("name") in ("residual", "parameters") and c.get("detail")), None)
-        out.append(f"<p>No calibration: {escape(why or 'it failed (see the verdicts)')}.</p>")
+        why = next((c.get("detail") for name in ("calibration", "residual", "parameters")
+                    for c in summary.get("checks") or []
+                    if c.get("name") == name and c.get("detail")), None)
+        why = (why or "it failed (see the verdicts)").removeprefix("no calibration: ")
+        out.append(f"<p>No calibration: {escape(why)}.</p>")
         return "".join(out) + "</section>"
     p = parameters
     facts = [f"log {p.get('log', '?')}, {p.get('samples', '?')} samples; method "
@@ -242,6 +244,13 @@ def _files(folder, present):
             + "</ul></section>")
 
 
+def _calibration_failed(summary):
+    """summary.json says the calibration failed: a "calibration" check and no figures."""
+    return "calibration" not in summary and any(
+        c.get("name") == "calibration" and c.get("status") == "fail"
+        for c in summary.get("checks") or [])
+
+
 def run_report_html(folder, *, when=None):
     """The run's report page (HTML text) from the products in report folder ``folder``
     (``when``: the run's date, a datetime; default now)."""
@@ -259,6 +268,10 @@ def run_report_html(folder, *, when=None):
     when = when or datetime.datetime.now(datetime.timezone.utc)
     present = {p.name for p in folder.iterdir() if p.is_file()}
     names = {n for n in present if n.endswith(".png")}
+    if _calibration_failed(summary):
+        # What an earlier run left in the folder is not this run's calibration.
+        parameters = None
+        names -= {f"{key}.png" for key in CALIBRATION_PLOTS}
     title, header = _title(summary, truth if isinstance(truth, dict) else None,
                            simulation if isinstance(simulation, dict) else None, when)
     body = [header, _verdicts(summary),

@@ -272,22 +272,26 @@ def test_the_run_writes_with_the_umask(run_folder):
 
 
 def test_a_run_without_calibration_still_gets_its_page(tmp_path):
-    # The calibration failed: no parameters.json, no plots, no papers.md; markup in a
-    # detail is text.
+    # The calibration failed: no papers.md, and what an earlier run left (its
+    # parameters.json and plots) is not shown; markup in a detail is text.
     report = tmp_path / "report"
     report.mkdir()
     checks = [{"name": "log", "status": "fail", "detail": "no <b>log</b> file on the card",
                "tolerance": "equal bytes"},
-              {"name": "residual", "status": "skip", "detail": "the calibration failed: "
-               "too few samples", "tolerance": ""}]
-    (report / "summary.json").write_text(json.dumps({"ok": False, "failed": ["log"],
+              {"name": "residual", "status": "skip", "detail": "no calibration",
+               "tolerance": ""},
+              {"name": "calibration", "status": "fail",
+               "detail": "no calibration: too few samples", "tolerance": ""}]
+    (report / "summary.json").write_text(json.dumps({"ok": False, "failed": ["log", "calibration"],
                                                      "checks": checks}))
+    (report / "parameters.json").write_text(json.dumps({"parameters": {"k11": 1.0}}))
+    (report / "figure7.png").write_bytes(b"an earlier run's plot")
     import html5lib
     ns = "{http://www.w3.org/1999/xhtml}"
     page = html5lib.HTMLParser(strict=True).parse(write_run_report(report).read_bytes())
     body = "".join(page.find(f"{ns}body").itertext())
-    assert "FAIL: 1 of 2 checks failed (log). Not checked: residual." in body
-    assert "No calibration: the calibration failed: too few samples." in body
+    assert "FAIL: 2 of 3 checks failed (log, calibration). Not checked: residual." in body
+    assert "No calibration: too few samples." in body and "k11" not in body
     assert "no <b>log</b> file on the card" in body and page.find(f".//{ns}b") is None
     assert all(PAPERS[key]["authors"] in body for key in PAPERS)
     assert page.find(f".//{ns}img") is None
