@@ -268,6 +268,12 @@ def run_report_html(folder, *, when=None):
     when = when or datetime.datetime.now(datetime.timezone.utc)
     present = {p.name for p in folder.iterdir() if p.is_file()}
     names = {n for n in present if n.endswith(".png")}
+    plots = (summary.get("papers") or {}).get("plots")
+    if isinstance(plots, dict):
+        # This run's figures: the calibration's and those summary.json lists for the papers
+        # (a PNG an earlier run left in the folder is not this run's).
+        names &= {f"{key}.png" for key in CALIBRATION_PLOTS} | \
+            {Path(str(path)).name for path in plots.values()}
     if _calibration_failed(summary):
         # What an earlier run left in the folder is not this run's calibration.
         parameters = None

@@ -271,7 +271,7 @@ def test_the_run_writes_with_the_umask(run_folder):
     assert set(modes.values()) == {want}, modes
 
 
-def test_a_run_without_calibration_still_gets_its_page(tmp_path):
+def test_a_run_without_calibration_still_gets_its_page(run_folder, tmp_path):
     # The calibration failed: no papers.md, and what an earlier run left (its
     # parameters.json and plots) is not shown; markup in a detail is text.
     report = tmp_path / "report"
@@ -282,8 +282,12 @@ def test_a_run_without_calibration_still_gets_its_page(tmp_path):
                "tolerance": ""},
               {"name": "calibration", "status": "fail",
                "detail": "no calibration: too few samples", "tolerance": ""}]
-    (report / "summary.json").write_text(json.dumps({"ok": False, "failed": ["log", "calibration"],
-                                                     "checks": checks}))
+    (report / "summary.json").write_text(json.dumps({
+        "ok": False, "failed": ["log", "calibration"], "checks": checks,
+        "papers": {"plots": {"paper_b_heading": str(report / "paper_b_heading.png")}}}))
+    (report / "paper_b_heading.png").write_bytes((run_folder / "paper_b_heading.png")
+                                                 .read_bytes())
+    (report / "paper_a_figure7.png").write_bytes(b"an earlier run's plot")
     (report / "parameters.json").write_text(json.dumps({"parameters": {"k11": 1.0}}))
     (report / "figure7.png").write_bytes(b"an earlier run's plot")
     import html5lib
@@ -294,4 +298,4 @@ def test_a_run_without_calibration_still_gets_its_page(tmp_path):
     assert "No calibration: too few samples." in body and "k11" not in body
     assert "no <b>log</b> file on the card" in body and page.find(f".//{ns}b") is None
     assert all(PAPERS[key]["authors"] in body for key in PAPERS)
-    assert page.find(f".//{ns}img") is None
+    assert [img.get("src") for img in page.iter(f"{ns}img")] == ["paper_b_heading.png"]
