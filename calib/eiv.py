@@ -289,39 +289,67 @@ def canonical(p):
     return p
 
 
-def to_log(q):
+#: The errors-in-variables solver's range for K's diagonal, as a factor of the data's scale
+#: either way (the swarm's box, ``scalar.DIAGONAL_RANGE``): the collapse K -> 0 lies outside.
+DIAGONAL_FACTOR = 2.0
+#: How close to that range's edge a start is put when it lies outside (as a share of it).
+_EDGE = 0.999
+
+
+def to_log(q, scale=None):
     """Solver coordinates: K's diagonal as its logarithm (so no step of any solver can
-    make it zero or negative), the other parameters as they are."""
+    make it zero or negative), the other parameters as they are. With ``scale`` (the
+    data's scale), the logarithm of diagonal / scale is further mapped by atanh onto the
+    whole line from the range within :data:`DIAGONAL_FACTOR` of it: a step cannot leave
+    that range either."""
     z = np.array(q, dtype=float)
-    z[list(DIAGONAL)] = np.log(z[list(DIAGONAL)])
+    d = list(DIAGONAL)
+    z[d] = np.log(z[d])
+    if scale is not None:
+        width = np.log(DIAGONAL_FACTOR)
+        z[d] = np.arctanh(np.clip((z[d] - np.log(scale)) / width, -_EDGE, _EDGE))
     return z
 
 
-def from_log(z):
+def from_log(z, scale=None):
     q = np.array(z, dtype=float)
-    q[list(DIAGONAL)] = np.exp(q[list(DIAGONAL)])
+    d = list(DIAGONAL)
+    if scale is not None:
+        q[d] = np.log(scale) + np.log(DIAGONAL_FACTOR) * np.tanh(q[d])
+    q[d] = np.exp(q[d])
     return q
 
 
-def _gauss_newton(q, root, prior=None, *, iterations=None):
+def _chain(z, q, scale=None):
+    """d q / d z of :func:`from_log` (diagonal)."""
+    chain = np.ones(len(q))
+    d = list(DIAGONAL)
+    chain[d] = q[d]
+    if scale is not None:
+        chain[d] *= np.log(DIAGONAL_FACTOR) * (1.0 - np.tanh(z[d]) ** 2)
+    return chain
+
+
+def _gauss_newton(q, root, prior=None, *, iterations=None, scale=None):
     """Levenberg-Marquardt on the 11 residuals ``root @ [theta(q), -1]`` (plus prior rows
-    ``A q - target``). K's diagonal is stepped as its logarithm: it stays positive by
-    construction (a start with a negative diagonal is first replaced by its twin,
-    :func:`canonical`). Returns (q, iterations, converged)."""
+    ``A q - target``). K's diagonal is stepped as its logarithm (:func:`to_log`): it stays
+    positive by construction (a start with a negative diagonal is first replaced by its
+    twin, :func:`canonical`), and with ``scale`` within :data:`DIAGONAL_FACTOR` of it, so
+    the collapsed minimum (K -> 0, |c| = r, the lowest when the reference hardly varies) is
+    out of reach. Returns (q, iterations, converged)."""
     def residual(z):
-        x = from_log(z)
+        x = from_log(z, scale)
         e = root @ np.append(theta(x), -1.0)
         return e if prior is None else np.concatenate([e, prior[0] @ x - prior[1]])
 
     def jacobian(z):
-        x = from_log(z)
-        chain = np.ones(len(x))
-        chain[list(DIAGONAL)] = x[list(DIAGONAL)]        # d exp(l) / dl
+        x = from_log(z, scale)
+        chain = _chain(z, x, scale)
         j = root[:, :10] @ theta_jacobian(x) * chain[None, :]
         return j if prior is None else np.vstack([j, prior[0] * chain[None, :]])
 
     iterations = MAX_ITERATIONS if iterations is None else iterations
-    z = to_log(canonical(q))
+    z = to_log(canonical(q), scale)
     e = residual(z)
     cost = e @ e
     damping = 1e-6
@@ -338,9 +366,9 @@ def _gauss_newton(q, root, prior=None, *, iterations=None):
                 step = np.zeros_like(z)
             trial = z + step
             with np.errstate(over="ignore", invalid="ignore"):
-                diagonal = np.exp(trial[list(DIAGONAL)])
+                diagonal = from_log(trial, scale)[list(DIAGONAL)]
                 e_trial = residual(trial)
-            c_trial = e_trial @ e_trial
+                c_trial = e_trial @ e_trial
             # A diagonal element that the exponential rounds to zero or infinity is no
             # model (the collapse K -> 0 is approached, never reached).
             if (np.isfinite(c_trial) and c_trial <= cost
@@ -348,14 +376,14 @@ def _gauss_newton(q, root, prior=None, *, iterations=None):
                 break
             damping *= 10
             if damping > 1e12:
-                return from_log(z), it, True    # no descent left: at the minimum
+                return from_log(z, scale), it, True     # no descent left: at the minimum
         z, e, change = trial, e_trial, cost - c_trial
         cost = c_trial
         damping = max(damping / 10, 1e-12)
         if change <= 1e-15 * max(cost, 1e-300) or np.max(np.abs(step)) <= 1e-13 * (
                 1 + np.max(np.abs(z))):
-            return from_log(z), it, True
-    return from_log(z), iterations, False
+            return from_log(z, scale), it, True
+    return from_log(z, scale), iterations, False
 
 
 @numba.njit(cache=True)
@@ -540,7 +568,7 @@ def fit_eiv(b, r, *, start=None, sigma_r=None, robust=True, keep=None, correct=T
                                             scale_guess)
         # The directions the coverage leaves to the prior, judged where the fit stands.
         held_rows, prior = _weak_prior(root, q, target, mom.count, shift, field_nt)
-        q, it, converged = _gauss_newton(q, root, prior)
+        q, it, converged = _gauss_newton(q, root, prior, scale=scale_guess)
         nit += it
         new_kept, cut, new_sigma = _reweight(_from_unit(q, shift, field_nt), b, r, kept,
                                              allowed, robust, sigma_r)
@@ -581,7 +609,7 @@ def _best_start(given, root, s, target, count, shift, field_nt, scale_guess):
     ends, nit = [], 0
     for candidate in candidates:
         _, prior = _weak_prior(root, candidate, target, count, shift, field_nt)
-        end, it, ok = _gauss_newton(candidate, root, prior)
+        end, it, ok = _gauss_newton(candidate, root, prior, scale=scale_guess)
         nit += it
         ends.append((not plausible(end), objective(end, s), end, ok))
     _, _, q, converged = min(ends, key=lambda item: item[:2])

@@ -554,8 +554,10 @@ def _heading(parsed, t, use_time, vectors, attitude):
 
 
 def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None,
-                   objective="eiv", determined_nt=None):
+                   objective="eiv", determined_nt=None, mag_lag=0.0, ref_lag=0.0):
     """Calibrate the largest log on a card image (or partition image, or plain log).
+    ``mag_lag`` and ``ref_lag`` (seconds) undo a first-order lag of the magnetometer's
+    axes or of the reference before the fit (:func:`~maglog.calib.bias.undo_lag`).
     ``attitude`` is an optional attitude file (:func:`read_attitude`); ``objective`` is the
     scalar fit's (:func:`~maglog.calib.scalar.calibrate_scalar`: "eiv" or "paper");
     ``determined_nt`` the bound on a determined parameter's 1-sigma in nT of field (None:
@@ -577,15 +579,22 @@ def calibrate_card(path, *, ref="cesium", method="pso", seed=0, attitude=None,
         determined_nt = check_bound(determined_nt)
     except ValueError as error:
         raise CalibrationError(str(error)) from None
+    from .bias import check_lag
+    try:
+        lags = (check_lag(mag_lag, "magnetometer's lag"), check_lag(ref_lag, "reference's lag"))
+    except ValueError as error:
+        raise CalibrationError(str(error)) from None
     attitude = None if attitude is None else read_attitude(attitude)
     with _warnings.catch_warnings(), np.errstate(all="ignore"):
         # Library warnings (numpy on a degenerate stretch, matplotlib) are not the user's
         # business: whatever matters is in the result's warnings.
         _warnings.simplefilter("ignore")
-        return _calibrate(path, ref, method, seed, attitude, objective, determined_nt)
+        return _calibrate(path, ref, method, seed, attitude, objective, determined_nt,
+                          lags)
 
 
-def _calibrate(path, ref, method, seed, attitude, objective, determined_nt=None):
+def _calibrate(path, ref, method, seed, attitude, objective, determined_nt=None,
+               lags=(0.0, 0.0)):
     logs = read_logs(path)
     if not logs:
         raise CalibrationError(f"{path}: no LOG*.TXT file found")
@@ -608,6 +617,14 @@ def _calibrate(path, ref, method, seed, attitude, objective, determined_nt=None)
                                f"magnetometer samples")
     b, r = mag.b[keep], r[keep]
     t = mag.t[keep] if use_time else mag_axis[keep]
+    if any(lags):
+        from .bias import undo_lag
+        if not use_time:
+            raise CalibrationError(f"{name}: undoing a lag needs the samples' times, and "
+                                   "this log has no GPS time")
+        b, r = undo_lag(b, t, lags[0]), undo_lag(r, t, lags[1])
+        notes.append(f"lags undone before the fit: magnetometer {1e3 * lags[0]:g} ms, "
+                     f"reference {1e3 * lags[1]:g} ms (first-order)")
     _check_scale(name, b, r)
     screen = screen_samples(t, b, r)
     screens["samples"] = screen
@@ -675,6 +692,10 @@ def _calibrate(path, ref, method, seed, attitude, objective, determined_nt=None)
         notes.append(f"{outliers} of {len(residual)} samples lie more than {spread:.3g} nT "
                      f"({OUTLIER_SIGMAS:g} robust standard deviations) off the fit: spikes "
                      "or bad samples in the log; the residual RMS is mostly theirs")
+    if use_time:
+        # What a bias looks like in the residual (calib.bias): a lag, or slow structure.
+        from .bias import check_residual
+        notes += check_residual(t, vectors, r, fitted).warnings
     return run
 
 

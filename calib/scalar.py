@@ -269,7 +269,7 @@ def _swarm(b, r, lower, upper, *, kernel, seed, particles, iterations, pso_sampl
         ends = [(not eiv._plausible(best, scale), eiv.objective(best, s), best)]
         for start in (best, eiv._linear_start(s, scale)):
             if start is not None and eiv._plausible(start, scale):
-                end, steps, _ = eiv._gauss_newton(start, root)
+                end, steps, _ = eiv._gauss_newton(start, root, scale=scale)
                 nit += steps
                 inside = np.all((end > lower / units) & (end < upper / units))
                 ends.append((not (inside and eiv._plausible(end, scale)),
@@ -411,7 +411,8 @@ def _calibrate(b, r, objective, method, seed, particles, iterations, kernel, pso
 
 def _collapsing(x, lower):
     """K's diagonal elements below the search box's floor, as "k11 0.047" (empty: none)."""
-    return [f"{PARAMETERS[i]} {x[i]:.3g}" for i in eiv.DIAGONAL if not x[i] > lower[i]]
+    return [f"{PARAMETERS[i]} {x[i]:.3g}" for i in eiv.DIAGONAL
+            if not x[i] > lower[i] or np.isclose(x[i], lower[i])]
 
 
 def _check_bounds(result, lower, upper):

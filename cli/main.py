@@ -28,6 +28,8 @@ SEED_MAX = (1 << 32) - 1
 #: ``calibrate --determined-nT``: calib.coverage.BOUND_RANGE_NT (not imported here: it loads
 #: the fits and numba, seconds before any --help).
 DETERMINED_NT_RANGE = (0.001, 10_000.0)
+#: ``calibrate --mag-lag/--ref-lag``, ms: calib.bias.MAX_LAG_S (not imported, as above).
+LAG_MS_MAX = 2000.0
 #: The demo flight's length: an hour is already hours of Icarus time at the real baud rate.
 DEMO_SECONDS_MAX = 3600.0
 #: A system clock the gateware can be generated for: Cyclone IV E runs its logic well below
@@ -461,7 +463,8 @@ def _cmd_calibrate(args):
     try:
         run = calibrate_card(card, ref=args.ref, method=args.method, seed=args.seed,
                              attitude=attitude, objective=args.objective,
-                             determined_nt=args.determined_nT)
+                             determined_nt=args.determined_nT,
+                             mag_lag=args.mag_lag / 1e3, ref_lag=args.ref_lag / 1e3)
     except (CardError, CalibrationError) as error:
         raise CliError(str(error)) from None
     _progress(f"[2/3] {run.log_name}: {len(run.b)} samples calibrated ({run.method}, "
@@ -875,6 +878,15 @@ def _parser():
                                 "noise of one sample, the fit's residual RMS: no parameter "
                                 "then adds more to a calibrated sample than the sensor's "
                                 "own noise); the verdict is UNDETERMINED otherwise")
+    calibrate.add_argument("--mag-lag", dest="mag_lag", metavar="MS",
+                           type=_float_in(0.0, LAG_MS_MAX), default=0.0,
+                           help="undo a first-order lag of this time constant (ms) on the "
+                                "magnetometer's axes before the fit, as a lag warning "
+                                "estimates it (default: 0, none)")
+    calibrate.add_argument("--ref-lag", dest="ref_lag", metavar="MS",
+                           type=_float_in(0.0, LAG_MS_MAX), default=0.0,
+                           help="undo a first-order lag of this time constant (ms) on the "
+                                "reference before the fit (default: 0, none)")
     attitude = calibrate.add_mutually_exclusive_group()
     attitude.add_argument("--attitude", metavar="CSV",
                           help="known attitude (t,roll_deg,pitch_deg,heading_deg; t in s "
