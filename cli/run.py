@@ -121,6 +121,38 @@ def record_rate(build_dir, backend, cycles, wall_s):
         pass
 
 
+def last_stage_seconds(build_dir, name):
+    """Wall-clock seconds the stage ``name`` of the last run with ``build_dir`` took here,
+    or None."""
+    import math
+    try:
+        seconds = float(json.loads((Path(build_dir) / RATES_FILE).read_text())
+                        ["stages"][name])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return seconds if math.isfinite(seconds) and seconds >= 0 else None
+
+
+def record_stages(build_dir, stages):
+    """Keep a run's stage times (``{name: seconds}``) in :data:`RATES_FILE` for the next
+    run's estimates; a build folder that cannot be written keeps nothing."""
+    path = Path(build_dir) / RATES_FILE
+    try:
+        rates = json.loads(path.read_text())
+        if not isinstance(rates, dict):
+            rates = {}
+    except (OSError, ValueError):
+        rates = {}
+    if not isinstance(rates.get("stages"), dict):
+        rates["stages"] = {}
+    rates["stages"].update(stages)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(rates, indent=1) + "\n")
+    except OSError:
+        pass
+
+
 def _estimate(system, backend, build_dir):
     """What simulate() says of the time a run will take: from the rate measured here by
     the last run, or what stands in for it."""
@@ -231,13 +263,20 @@ def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers
     from .summary import summarize
     out = Path(out_dir)
     started = time.perf_counter()
+    laps = {}
+
+    def lap(name):
+        laps[name] = time.perf_counter() - started - sum(laps.values())
+
     _say("[1/4] building the scenario")
     stimulus = load(scenario_path, max_seconds=max_seconds, backend=backend,
                     build_dir=build_dir)
+    lap("scenario")
     _say(f"[2/4] the logger's RTL on {backend}")
     card = out / "card.img"
     result = simulate(stimulus, card, backend=backend, build_dir=build_dir,
                       progress=progress)
+    lap("simulation")
     _say("[3/4] calibrating the card's log")
     run, failure = None, None
     try:
@@ -249,7 +288,11 @@ def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers
                              attitude=out / stimulus.truth["flight"]["attitude_csv"])
     except (CardError, CalibrationError) as error:
         failure = error
-    _say("[4/4] report")
+    lap("calibration")
+    papers_key = "report_quick_papers" if quick_papers else "report"
+    last = last_stage_seconds(build_dir, papers_key)
+    _say("[4/4] report and the papers' results"
+         + (f" (the last run here: {_duration(last)})" if last is not None else ""))
     report = out / "report"
     if run is not None:
         try:
@@ -279,6 +322,10 @@ def main_job(scenario_path, out_dir, *, backend, build_dir, seed=0, quick_papers
                        f"{error.strerror or error}") from None
     summary.files = {"card": card, "report": page, "markdown": paths.get("markdown"),
                      "papers": report / "papers.md", "summary": report / "summary.json"}
+    lap("report and papers")
+    record_stages(build_dir, {papers_key: laps["report and papers"]})
+    _say("run: " + ", ".join(f"{name} {_duration(seconds)}" for name, seconds in laps.items())
+         + f"; {_duration(time.perf_counter() - started)} in all")
     return summary
 
 

@@ -162,3 +162,15 @@ def test_a_verilator_demo_times_its_build_apart(tmp_path, capsys, external):
     assert f"(the last build here took {built[1]} s) ..." in second
     assert "(measured here by the last demo)" in second
     assert timing["build_s"] > 0 and timing["cycles_per_s"] > 0
+
+
+def test_a_runs_stage_times_are_kept_beside_its_rates(tmp_path):
+    assert cli_run.last_stage_seconds(tmp_path, "report") is None
+    cli_run.record_rate(tmp_path, "verilator", 4e8, 100.0)
+    cli_run.record_stages(tmp_path, {"report": 80.5})
+    cli_run.record_stages(tmp_path, {"report_quick_papers": 12.0})
+    assert cli_run.last_stage_seconds(tmp_path, "report") == 80.5
+    assert cli_run.last_stage_seconds(tmp_path, "report_quick_papers") == 12.0
+    assert cli_run.measured_rate(tmp_path, "verilator")[0] == 4e6   # the rates kept too
+    (tmp_path / "rates.json").write_text('{"stages": {"report": "slow"}}')
+    assert cli_run.last_stage_seconds(tmp_path, "report") is None

@@ -20,11 +20,21 @@ def test_run_on_the_model_scores_itself(tmp_path, capsys):
     scenario = tmp_path / "scenario.toml"
     scenario.write_text(_without_line_faults())
     out = tmp_path / "run"
+    build = tmp_path / "build"
     status = main(["run", str(scenario), "--backend", "model", "-o", str(out),
-                   "--quick-papers", "--quiet"])
-    printed = capsys.readouterr().out
+                   "--quick-papers", "--quiet", "--build-dir", str(build)])
+    captured = capsys.readouterr()
+    printed = captured.out
     assert status == 0, printed
     assert "=> FAILED" not in printed
+    # Each stage said as it starts; their times at the end, the report's kept for the next
+    # run's estimate (issue 24).
+    stages = [line for line in captured.err.splitlines() if line.startswith(("[", "run:"))]
+    assert [line[:5] for line in stages] == ["[1/4]", "[2/4]", "[3/4]", "[4/4]", "run: "]
+    assert re.fullmatch(r"run: scenario \d+ s, simulation \d+ s, calibration \d+ s, report and "
+                        r"papers \d+ s; \d+ s in all", stages[-1]), stages[-1]
+    rates = json.loads((build / "rates.json").read_text())
+    assert rates["stages"]["report_quick_papers"] > 0
     for check in ("frames.mag", "frames.gps", "frames.cesium", "log", "residual",
                   "parameters"):
         assert re.search(rf"PASS {re.escape(check)}\b", printed), check
