@@ -7,8 +7,9 @@ what the moment surrogate buys, and whether the swarm changes a calibration's re
    the same search box (``calibrate_scalar``'s), swarm (40 particles x 300 iterations,
    bench/calib/run.py's constants), seeds 0..R-1 (one per repeat) and the same polish after
    it (heldout.py's ``paper_polish``, the one ``objective="paper"`` runs): maglog's gbest
-   against pyswarms' ``GlobalBestPSO``, maglog's ring against ``LocalBestPSO`` (k = 3). Timed:
-   the swarm alone and the swarm + polish; the polished fit's in-sample ratio.
+   against pyswarms' ``GlobalBestPSO``, maglog's ring against ``LocalBestPSO`` (k = 3),
+   the repeats interleaved. Timed: the swarm alone and the swarm + polish; the polished
+   fit's in-sample ratio.
 2. What the surrogate buys (maglog against maglog, labelled as such): the same ring swarm on
    the moment surrogate (``scalar._swarm(kernel="moments")``, whose cost does not visit the
    samples) against the exact cost on every sample; and ``calibrate_scalar`` whole
@@ -93,13 +94,15 @@ def like_for_like(samples, repeats):
     b, r, total, floor = _flight(samples)
     lower, upper, _ = scalar._box(b, r)
     cost = lambda x: _pso.cost_numba(x, b, r)          # noqa: E731 - one objective for all
-    runs = {}
-    for name, topology, kind in (("maglog_gbest", "gbest", None),
-                                 ("pyswarms_gbest", None, "gbest"),
-                                 ("maglog_ring", "ring", None),
-                                 ("pyswarms_lbest", None, "ring")):
-        swarm, whole, ratios, costs = [], [], [], []
-        for seed in range(repeats):
+    variants = (("maglog_gbest", "gbest", None), ("pyswarms_gbest", None, "gbest"),
+                ("maglog_ring", "ring", None), ("pyswarms_lbest", None, "ring"))
+    measured = {name: {"swarm": [], "whole": [], "ratios": [], "costs": []}
+                for name, _, _ in variants}
+    # The repeats interleaved (each seed runs every variant in turn): a load that changes
+    # during the bench falls on all of them alike.
+    for seed in range(repeats):
+        for name, topology, kind in variants:
+            m = measured[name]
             t0 = time.perf_counter()
             if topology is not None:
                 best, best_cost, _, _ = _pso.pso(cost, lower, upper, particles=PARTICLES,
@@ -111,16 +114,20 @@ def like_for_like(samples, repeats):
             t1 = time.perf_counter()
             fit = heldout.paper_polish(b, r, np.asarray(best, float))
             t2 = time.perf_counter()
-            swarm.append(t1 - t0)
-            whole.append(t2 - t0)
-            costs.append(float(best_cost))
-            ratios.append(heldout.residual_rms(fit.K, fit.c, b, total) / floor)
-        runs[name] = {"swarm": summary(swarm), "swarm_and_polish": summary(whole),
-                      "best_cost_median": statistics.median(costs),
-                      "insample_ratios": ratios}
+            m["swarm"].append(t1 - t0)
+            m["whole"].append(t2 - t0)
+            m["costs"].append(float(best_cost))
+            m["ratios"].append(heldout.residual_rms(fit.K, fit.c, b, total) / floor)
+    runs = {}
+    for name, m in measured.items():
+        runs[name] = {"swarm": summary(m["swarm"]), "swarm_and_polish": summary(m["whole"]),
+                      "best_cost_median": statistics.median(m["costs"]),
+                      "insample_ratios": m["ratios"]}
         print(f"{samples:6d} samples {name:15s}: swarm median "
-              f"{statistics.median(swarm) * 1e3:7.1f} ms, + polish "
-              f"{statistics.median(whole) * 1e3:7.1f} ms, worst ratio {max(ratios):.4f}")
+              f"{statistics.median(m['swarm']) * 1e3:7.1f} ms (best "
+              f"{min(m['swarm']) * 1e3:7.1f} ms), + polish "
+              f"{statistics.median(m['whole']) * 1e3:7.1f} ms, worst ratio "
+              f"{max(m['ratios']):.4f}")
     pairs = []
     for ours, theirs in (("maglog_gbest", "pyswarms_gbest"), ("maglog_ring", "pyswarms_lbest")):
         pairs.append({"maglog": ours, "pyswarms": theirs, **{
@@ -262,7 +269,7 @@ def verdict(rows):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5,
+    parser.add_argument("--repeats", type=int, default=7,
                         help="repeats (seeds 0..N-1) of each timing (default: %(default)s)")
     parser.add_argument("--seeds", type=int, default=5,
                         help="seeds per case of the result comparison (default: %(default)s)")
