@@ -186,7 +186,11 @@ def load(path, *, max_seconds=None, backend=None, build_dir=None):
     except OSError as error:
         raise RunError(f"{path}: {error.strerror or error}") from None
     seconds, cycles, wall = run_size(scenario, backend, build_dir)
-    on = f", ~{_duration(wall)} on {backend}" if wall and backend != "model" else ""
+    on = ""
+    if wall and backend != "model":
+        whose = ("the rate measured here" if build_dir is not None
+                 and measured_rate(build_dir, backend) else "the bench machine's rate")
+        on = f", ~{_duration(wall)} on {backend} at {whose}"
     if max_seconds is not None and seconds > max_seconds:
         raise RunError(f"{scenario.source}: this run needs about {seconds:,.0f} s of simulated "
                        f"flight ({cycles:.3g} clock cycles{on}), more than --max-seconds "

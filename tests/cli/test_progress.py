@@ -174,3 +174,11 @@ def test_a_runs_stage_times_are_kept_beside_its_rates(tmp_path):
     assert cli_run.measured_rate(tmp_path, "verilator")[0] == 4e6   # the rates kept too
     (tmp_path / "rates.json").write_text('{"stages": {"report": "slow"}}')
     assert cli_run.last_stage_seconds(tmp_path, "report") is None
+
+
+def test_a_runs_size_says_whose_rate_its_estimate_is(tmp_path, capsys):
+    cli_run.load("short", max_seconds=1200, backend="verilator", build_dir=tmp_path)
+    assert "on verilator at the bench machine's rate), within" in capsys.readouterr().err
+    cli_run.record_rate(tmp_path, "verilator", 4e8, 100.0)
+    cli_run.load("short", max_seconds=1200, backend="verilator", build_dir=tmp_path)
+    assert "on verilator at the rate measured here), within" in capsys.readouterr().err
