@@ -194,7 +194,9 @@ class _StageLines:
 def _job_lines(started):
     """``run_batch``'s ``on_done``: a line per finished job, with the time left at the rate
     the jobs have finished so far."""
-    from .run import _duration
+
+    def rounded(seconds):
+        return f"{seconds / 60:.0f} min" if seconds >= 90 else f"{seconds:.0f} s"
 
     def done_line(record, done, total):
         elapsed = time.perf_counter() - started
@@ -202,7 +204,7 @@ def _job_lines(started):
                 f"{'ok' if record['ok'] else 'failed'} in {record.get('wall_s', 0):.0f} s); "
                 f"{elapsed:.0f} s so far")
         if done < total:
-            line += (f", about {_duration(elapsed / done * (total - done))} left at "
+            line += (f", about {rounded(elapsed / done * (total - done))} left at "
                      f"{elapsed / done:.0f} s a job")
         print(line, file=sys.stderr, flush=True)
     return done_line
