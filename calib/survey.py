@@ -365,7 +365,7 @@ def _clock():
 #: stage's entry in :attr:`SurveyResult.times` (survey.json's ``times_s``).
 STAGES = (("vector_calibration_s", "reading the log, calibrating the vector magnetometer"),
           ("timing_georef_s", "timing the cesium, georeferencing"),
-          ("tolles_lawson_s", "compensating (Tolles–Lawson; deinterf beside it)"),
+          ("tolles_lawson_s", "compensating (Tolles–Lawson)"),
           ("igrf_diurnal_s", "IGRF and the diurnal correction"),
           ("lag_s", "the positions' lag"),
           ("levelling_s", "levelling"),
