@@ -120,3 +120,22 @@ def test_every_solver_keeps_the_diagonal_positive(objective, flight_a):
     for method in ("pso", "lm"):
         result = calibrate_scalar(flight_a.b, flight_a.r, objective=objective, method=method)
         assert np.all(np.diag(result.K) > 0), (objective, method)
+
+
+def test_a_fit_at_the_diagonal_floor_is_replaced_by_the_bounded_fit(flight_a, monkeypatch):
+    # The errors-in-variables fit steps K's diagonal within the box, so reaching its floor
+    # (the collapse K -> 0 pulling) is rare; when it happens the paper objective's bounded
+    # fit is reported instead, and said.
+    from maglog.calib import scalar
+    real = scalar._fit_eiv
+
+    def collapsing(*args):
+        result = real(*args)
+        result.x = result.x.copy()
+        result.x[5] = 1e-3
+        return result
+    monkeypatch.setattr(scalar, "_fit_eiv", collapsing)
+    result = calibrate_scalar(flight_a.b, flight_a.r)
+    assert result.objective == "paper" and np.all(np.diag(result.K) > 0.5)
+    assert "slid towards the trivial solution (K's diagonal k33 0.001" in result.warnings[0]
+    assert result.rms < 1.01 * realkind.truth_rms(flight_a)
