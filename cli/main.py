@@ -714,6 +714,7 @@ def _cmd_record(args):
     # was, and never removes what -o names (it may be a device such as /dev/null).
     ports = _open_ports(devices, bauds)
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)      # as every -o of maglog does
         log = open(out, "wb")
     except OSError as error:
         _close_ports(ports)

@@ -21,6 +21,7 @@ are checked where they are: the end of ``make run`` by the slow main-job test be
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -104,6 +105,9 @@ class Rule:
     ports: int = 0                  # /dev/ttyUSB0.. replaced by pseudo-terminals
     outputs: tuple = ()             # paths the command must leave behind
     timeout: float = 300.0
+    #: (tool, message): without ``tool`` on PATH the example must end in exit status 1 and
+    #: this one-line message (a user without that tool meets it), not a shell's error.
+    without: tuple = ()
     marks: list = field(default_factory=list)
 
     def claims(self, example):
@@ -127,15 +131,20 @@ RULES = [
     Rule(MAGLOG + r"hdl build ", "run", needs=("build/ep4ce6",), timeout=600),
     Rule(MAGLOG + r"hdl component ", "run", timeout=600),
     Rule(r"^maglog hdl (build|component) ", "run", timeout=600),
-    Rule(r"^cd build/de0nano && \./build\.sh$", "run", needs=("build/de0nano",)),
+    Rule(r"^cd build/de0nano && \./build\.sh$", "run", needs=("de0nano project",),
+         without=("quartus_sh", r"^build\.sh: Quartus Prime with Platform Designer is not "
+                                r"on PATH \(not found: .*quartus_sh\); add its bin")),
     # Cards, calibration, the survey.
     Rule(MAGLOG + r"card format ", "run"),
-    Rule(MAGLOG + r"card ", "run", needs=("build/run",)),
+    Rule(MAGLOG + r"card ", "run"),
     Rule(MAGLOG + r"calibrate LOG00001\.TXT", "run", needs=("LOG00001.TXT",)),
-    Rule(MAGLOG + r"calibrate ", "run", needs=("build/run",), timeout=600),
+    Rule(MAGLOG + r"calibrate ", "run", timeout=600),
     Rule(MAGLOG + r"simulate survey ", "run", slow=True, outputs=("build/survey/card.img",)),
-    Rule(MAGLOG + r"survey .*--scheduler", "run", slow=True, needs=("scheduler",)),
-    Rule(MAGLOG + r"survey ", "run", slow=True, needs=("build/survey",), timeout=900),
+    Rule(r"^\.venv/bin/dask (scheduler|worker) .*&$",
+         "the --scheduler example's test, which starts it as written"),
+    Rule(MAGLOG + r"survey .*--scheduler", "run", slow=True, needs=("scheduler",),
+         timeout=900),
+    Rule(MAGLOG + r"survey ", "run", slow=True, timeout=900),
     # Whole runs.
     Rule(MAGLOG + r"run --backend model ", "run"),
     Rule(MAGLOG + r"run$", "ci: .ci/run (make run)"),
@@ -197,31 +206,88 @@ class Scratch:
         self.shared = shared
         (folder / ".venv").mkdir()
         (folder / ".venv" / "bin").symlink_to(VENV_BIN)
+        self.background = []
         self.env = dict(os.environ, PATH=f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}",
                         MAGLOG_BUILD_DIR=str(shared.build_dir))
 
+    #: Inputs an example may name, made from the session's shared run and survey; a path
+    #: is provided when a command names it other than as its ``-o``/``--out``.
+    INPUTS = ("build/logs/LOG00001.TXT", "build/survey/logs/LOG00001.TXT", "build/run",
+              "build/quick", "build/survey")
+
+    def provide_for(self, command):
+        for need in self.INPUTS:
+            pattern = rf"(?<![\w/.-]){re.escape(need)}(?![\w.-])"
+            mentions = [m.start() for m in re.finditer(pattern, command)]
+            if any(not re.search(r"(-o|--out|--output) $", command[:at]) for at in mentions):
+                self.provide(need)
+
     def provide(self, need):
         target = self.folder / need
+        if target.exists():
+            return
         target.parent.mkdir(parents=True, exist_ok=True)
         if need == "docs":
             target.mkdir()
-        elif need == "my_flight.toml":
+        elif need in ("my_flight.toml", "my.toml"):
             target.write_text((ROOT / "sim/stimulus/short.toml").read_text())
-        elif need == "my.toml":
-            target.write_text((ROOT / "sim/stimulus/short.toml").read_text())
-        elif need == "build/run":
-            target.symlink_to(self.shared.run())
+        elif need in ("build/run", "build/quick", "build/survey"):
+            # The shared folder's files linked into a folder of this scratch's own, so that
+            # an example may write beside them.
+            source = self.shared.survey() if need == "build/survey" else self.shared.run()
+            target.mkdir()
+            for item in source.iterdir():
+                (target / item.name).symlink_to(item)
+        elif need == "build/logs/LOG00001.TXT":
+            target.write_bytes(self.shared.log(self.shared.run()))
+        elif need == "build/survey/logs/LOG00001.TXT":
+            self.provide("build/survey")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(self.shared.log(self.shared.survey()))
         elif need == "LOG00001.TXT":
-            target.write_bytes(self.shared.log())
-        elif need == "build/survey":
-            target.symlink_to(self.shared.survey())
+            target.write_bytes(self.shared.log(self.shared.run()))
         elif need in ("build/ep4ce6", "build/de0nano"):
             target.mkdir()
             (target / "left-over.txt").write_text("not empty: --force is needed\n")
+        elif need == "de0nano project":
+            result = self.run(".venv/bin/maglog hdl build --board de0nano -o build/de0nano",
+                              600)
+            assert result.returncode == 0, result.stderr
         elif need == "scheduler":
-            pass
+            self._start_cluster()
         else:
             raise AssertionError(f"unknown input {need}")
+
+    def _start_cluster(self):
+        """The README's own commands that start a Dask scheduler and worker (the lines of
+        the --scheduler example's block that end in ``&``), run as written; stopped by
+        :meth:`close`."""
+        import socket
+        lines = [e.text for e in EXAMPLES if re.match(r"^\.venv/bin/dask .*&$", e.text)]
+        assert any(" scheduler " in f"{line} " for line in lines), "no scheduler command"
+        for line in lines:
+            self.background.append(subprocess.Popen(
+                ["bash", "-c", "exec " + line.rstrip("&").strip()], cwd=self.folder,
+                env=self.env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            if " scheduler " in f"{line} ":
+                port = int(re.search(r"--port (\d+)", line).group(1))
+                deadline = time.monotonic() + 60
+                while True:
+                    try:
+                        socket.create_connection(("127.0.0.1", port), 1).close()
+                        break
+                    except OSError:
+                        assert time.monotonic() < deadline, "the scheduler did not start"
+                        time.sleep(0.5)
+        time.sleep(3)                       # the worker registers
+
+    def close(self):
+        for process in self.background:
+            process.terminate()
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
 
     def run(self, command, timeout, env=None):
         return subprocess.run(["bash", "-c", command], cwd=self.folder,
@@ -241,19 +307,21 @@ class Shared:
         result = subprocess.run([str(VENV_BIN / "maglog"), *args], cwd=self.folder,
                                 capture_output=True, text=True, timeout=timeout)
         assert result.returncode == 0, (args, result.stdout[-2000:], result.stderr[-2000:])
+        return result.stdout
 
     def run(self):
         """A run's folder (``maglog run -o``) from the model backend: card.img, attitude.csv,
         truth.json, report/."""
         if self._run is None:
-            self._maglog("run", "--backend", "model", "--quick-papers", "--quiet",
-                         "-o", "run")
+            self.run_printed = self._maglog("run", "--backend", "model", "--quick-papers",
+                                            "--quiet", "-o", "run")
             self._run = self.folder / "run"
         return self._run
 
-    def log(self):
+    @staticmethod
+    def log(folder):
         from maglog.calib.card import read_logs
-        return read_logs(self.run() / "card.img")[-1][1]
+        return read_logs(folder / "card.img")[-1][1]
 
     def survey(self):
         if self._survey is None:
@@ -270,7 +338,43 @@ def shared(tmp_path_factory):
 
 @pytest.fixture
 def scratch(tmp_path, shared):
-    return Scratch(tmp_path, shared)
+    folder = Scratch(tmp_path, shared)
+    yield folder
+    folder.close()
+
+
+def test_readme_verdicts_are_what_the_default_scenario_prints(shared):
+    """The README's end of ``make run`` against the default scenario on the model backend,
+    which gives the RTL's card block for block (the slow main-job test in
+    tests/cli/test_run.py checks it against the RTL run itself)."""
+    from readme import printed_verdicts, readme_verdicts, same_printout
+    shared.run()
+    difference = same_printout(readme_verdicts(), printed_verdicts(shared.run_printed))
+    assert difference is None, "README.md's printed verdicts are stale:\n" + difference
+
+
+def printed_blocks():
+    """(document, line, command, block) for each block the Markdown marks as a command's
+    output with ``<!-- printed: COMMAND -->`` on the line before it."""
+    found = []
+    for path in DOCUMENTS:
+        text = path.read_text(encoding="utf-8")
+        for match in re.finditer(r"^<!-- printed: (.+?) -->\n```\w*\n(.*?)^```", text,
+                                 re.S | re.M):
+            line = text[:match.start()].count("\n") + 1
+            found.append(pytest.param(match.group(1), match.group(2).strip("\n"),
+                                      id=f"{path.relative_to(ROOT)}:{line}"))
+    return found
+
+
+@pytest.mark.parametrize("command, shown", printed_blocks())
+def test_printed_output_is_what_the_command_prints(command, shown, scratch):
+    from readme import same_printout
+    scratch.provide_for(command)
+    result = scratch.run(command, 300)
+    assert result.returncode == 0, result.stderr
+    difference = same_printout(shown, result.stdout.strip("\n"))
+    assert difference is None, f"`{command}` prints otherwise now:\n{difference}"
 
 
 # --- the tests ----------------------------------------------------------------------------
@@ -281,10 +385,17 @@ def test_shell_example(example, scratch):
     for need in rule.needs:
         scratch.provide(need)
     command = example.text
+    scratch.provide_for(command)
     if rule.ports:
         _run_with_ports(example, rule, scratch)
         return
     result = scratch.run(command, rule.timeout)
+    if rule.without and shutil.which(rule.without[0], path=scratch.env["PATH"]) is None:
+        tool, message = rule.without
+        lines = result.stderr.strip().splitlines()
+        assert result.returncode == 1 and len(lines) == 1 and re.match(message, lines[0]), (
+            f"{example.id}: without {tool}: exit {result.returncode}, {result.stderr}")
+        return
     assert result.returncode == 0, (
         f"{example.id}: `{command}` exited {result.returncode}\n"
         f"{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
@@ -406,3 +517,20 @@ def test_toml_example(example, scratch, external):
     path.write_text(example.text)
     scenario = load_scenario(str(path))
     assert scenario is not None
+
+
+def test_links_stay_in_the_repository():
+    """Every relative link of the Markdown names a file of the repository (anchors and web
+    addresses aside): a reader with only the repository can follow each one."""
+    broken = []
+    for path in DOCUMENTS:
+        text = path.read_text(encoding="utf-8")
+        for match in re.finditer(r"\]\(([^)\s]+)\)", text):
+            target = match.group(1).split("#")[0]
+            if not target or re.match(r"^[a-z]+:", target):
+                continue
+            resolved = (path.parent / target).resolve()
+            line = text[:match.start()].count("\n") + 1
+            if ROOT not in resolved.parents or not resolved.exists():
+                broken.append(f"{path.relative_to(ROOT)}:{line}: {match.group(1)}")
+    assert not broken, "links that leave the repository or lead nowhere:\n" + "\n".join(broken)

@@ -257,6 +257,15 @@ def build_script(board):
 # it the memory starts empty and the firmware is loaded over JTAG (nios2-download).
 set -e
 cd "$(dirname "$0")"
+missing=""
+for tool in qsys-script qsys-generate quartus_sh; do
+  command -v "$tool" >/dev/null 2>&1 || missing="$missing $tool"
+done
+if [ -n "$missing" ]; then
+  echo "build.sh: Quartus Prime with Platform Designer is not on PATH (not found:$missing);" \
+       "add its bin folders (quartus/bin, quartus/sopc_builder/bin) to PATH" >&2
+  exit 1
+fi
 qsys-script --script={CPU_MODULE}.tcl
 qsys-generate {CPU_MODULE}.qsys --synthesis=VERILOG --output-directory={CPU_MODULE} \\
     --family="Cyclone IV E" --part={device}
