@@ -9,17 +9,21 @@ VENV=${VENV:-.venv}
 
 die() { echo "setup: $*" >&2; exit 1; }
 
-# Python 3.11 (the toolchain is pinned against it).
+# Python 3.12 or 3.11 (pyproject.toml's requires-python: the versions every pinned
+# dependency has wheels for and the suite has run on), the first found of python3.12,
+# python3.11 and python3.
+supported() { "$1" -c 'import sys; sys.exit(sys.version_info[:2] not in ((3, 11), (3, 12)))' 2>/dev/null; }
 PYTHON=${PYTHON:-}
 if [ -z "$PYTHON" ]; then
-  for candidate in python3.11 python3; do
-    if command -v "$candidate" >/dev/null 2>&1 &&
-       "$candidate" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+  for candidate in python3.12 python3.11 python3; do
+    if command -v "$candidate" >/dev/null 2>&1 && supported "$candidate"; then
       PYTHON=$candidate; break
     fi
   done
+  [ -n "$PYTHON" ] || die "Python 3.12 or 3.11 is required (python3.12, python3.11 or python3 on PATH; Debian 12: apt-get install python3 python3-venv gives 3.11; or pyenv install 3.12); or set PYTHON=/path/to/python3.12"
+elif ! supported "$PYTHON"; then
+  die "PYTHON=$PYTHON is not Python 3.11 or 3.12 ($("$PYTHON" --version 2>&1 || echo 'not found'))"
 fi
-[ -n "$PYTHON" ] || die "Python 3.11 is required (python3.11 or python3 must be 3.11); install it, or set PYTHON=/path/to/python3.11"
 
 if [ ! -x "$VENV/bin/python" ]; then
   echo "setup: creating $VENV with $PYTHON"
