@@ -1,5 +1,6 @@
 """Serial front end: a UART receiver and a frame filter per channel, and the arbiter."""
 
+import math
 from dataclasses import dataclass
 
 from amaranth import *
@@ -18,7 +19,8 @@ from .uart import UartRx
 
 
 __all__ = ["ChannelConfig", "DEFAULT_CHANNELS", "TOPLEVEL_NAME", "Channel", "FrontEnd",
-           "FrontEndRegisters", "divisor_for", "register_address", "generate_verilog"]
+           "FrontEndRegisters", "divisor_for", "MAX_BAUD_ERROR", "register_address",
+           "generate_verilog"]
 
 
 #: Module name of the front end's generated Verilog.
@@ -61,15 +63,36 @@ DEFAULT_CHANNELS = (
 )
 
 
+#: The largest error of a receiver's own rate (``clk_freq / (16 * divisor)`` against the
+#: nominal baud rate) that a channel may be built with. The receiver (hw/uart.py) takes a
+#: continuous stream of characters whose bits are up to 3.75 % shorter or 5.55 % longer than
+#: its own at the divisors of 9600 and 115200 baud from 1.8432 to 40 MHz (12 to 260; the
+#: stop bit's vote must come before the next start bit, 154 of 160 ticks, and its middle
+#: sample after data bit 7, 152 of 144; divisors 1 and 2 take 4.06 / 5.90 % and
+#: 3.91 / 5.72 %): measured with the model's receiver (sim/models/logger_uart.py), which
+#: tests/sim/models/test_logger_uart.py holds to UartRx on the Amaranth simulator, and on
+#: UartRx itself at divisor 22. Within ±1.5 % of its own, a transmitter may still be 2.3 %
+#: fast or 3.8 % slow (the receiver 1.5 % slow or fast) and every character arrive intact.
+MAX_BAUD_ERROR = 0.015
+
+
 def divisor_for(clk_freq, baud):
-    """The UartRx divisor nearest to ``baud`` at ``clk_freq``, checked against ±1 % error."""
-    divisor = round(clk_freq / (arch_uart.OVERSAMPLING * baud))
+    """The UartRx divisor nearest to ``baud`` at ``clk_freq``, checked against
+    :data:`MAX_BAUD_ERROR`; a refusal names the clocks near ``clk_freq`` that give ``baud``
+    exactly."""
+    ideal = clk_freq / (arch_uart.OVERSAMPLING * baud)
+    divisor = round(ideal)
     if not 1 <= divisor < 1 << DIVISOR_BITS:
         raise ValueError(f"Baud rate {baud} cannot be reached from a {hertz(clk_freq)} clock")
     error = clk_freq / (arch_uart.OVERSAMPLING * divisor) / baud - 1
-    if abs(error) > 0.01:
+    if abs(error) > MAX_BAUD_ERROR:
+        near = [arch_uart.OVERSAMPLING * baud * d for d in (math.floor(ideal),
+                                                            math.floor(ideal) + 1)
+                if 1 <= d < 1 << DIVISOR_BITS]
         raise ValueError(f"Baud rate {baud} from a {hertz(clk_freq)} clock is off by "
-                         f"{error:+.2%}; use a clock that divides better")
+                         f"{error:+.2%}: beyond the receiver's ±{MAX_BAUD_ERROR:.1%} (the rest "
+                         f"of what it tolerates is left to the transmitter); "
+                         f"{' or '.join(hertz(f) for f in near)} would give it exactly")
     return divisor
 
 
