@@ -34,7 +34,17 @@ stamp="$VENV/.maglog-installed"
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ setup.py -nt "$stamp" ]; then
   echo "setup: installing maglog and its test tools into $VENV"
   "$VENV/bin/python" -m pip install --quiet --upgrade pip
-  "$VENV/bin/python" -m pip install --quiet -e ".[test]"
+  # setuptools prints a notice framed in "!!" lines for every editable install whose
+  # packages are not under src/ (pyproject.toml says why maglog's are not): nothing is
+  # wrong, so a successful install shows one line instead; a failed one shows everything.
+  log="$VENV/pip-install.log"
+  if ! "$VENV/bin/python" -m pip install --quiet -e ".[test]" >"$log" 2>&1; then
+    cat "$log" >&2
+    die "pip install -e .[test] failed (the output above, also in $log)"
+  fi
+  sed -e '/BuildBackendWarning: Editable installation/,/with strategy, WheelFile/d' "$log" \
+    | grep -v '^[[:space:]]*$' >&2 || true
+  echo "setup: installed maglog (editable) and its test tools; pip's output in $log"
   touch "$stamp"
 fi
 

@@ -153,7 +153,8 @@ RULES = [
     Rule(MAGLOG + r"simulate ", "run", slow=True, timeout=900),
     Rule(MAGLOG + r"demo ", "run", slow=True, timeout=900),
     # Hardware in the loop, over pseudo-terminals.
-    Rule(MAGLOG + r"replay ", "run", needs=("my_flight.toml",), ports=3, timeout=120),
+    Rule(MAGLOG + r"replay ", "run", slow=True, needs=("my_flight.toml",), ports=3,
+         timeout=300),
     Rule(MAGLOG + r"record ", "run", ports=3, timeout=120),
     # Blocks of other languages.
     Rule(r"load_scenario", "run", language="python", needs=("my.toml",)),
@@ -229,8 +230,15 @@ class Scratch:
         target.parent.mkdir(parents=True, exist_ok=True)
         if need == "docs":
             target.mkdir()
-        elif need in ("my_flight.toml", "my.toml"):
+        elif need == "my.toml":
             target.write_text((ROOT / "sim/stimulus/short.toml").read_text())
+        elif need == "my_flight.toml":
+            # A flight of one's own: the default's calibration pattern (so that it
+            # determines every parameter and can pass) without the survey lines.
+            text = (ROOT / "sim/stimulus/default.toml").read_text()
+            text, count = re.subn(r"(?m)^legs = 2\b", "legs = 0", text)
+            assert count == 1, "default.toml's [flight.survey] legs moved"
+            target.write_text(text)
         elif need in ("build/run", "build/quick", "build/survey"):
             # The shared folder's files linked into a folder of this scratch's own, so that
             # an example may write beside them.

@@ -321,7 +321,8 @@ def test_record_of_a_calibration_flight_calibrates(tmp_path, capsys):
     (["record", "--port", "/dev/no-such-tty", "-o", "{tmp}/L.TXT"], 1, "no such port"),
     (["record", "--port", "/dev/null", "-o", "{tmp}/L.TXT"], 1, "not a serial port"),
     (["record", "--port", "mag=loop://", "--baud", "mag=7", "-o", "x"], 2, "baud rate"),
-    (["record", "--port", "loop://", "-o", "{tmp}/no/such/dir/L.TXT"], 1, "cannot write"),
+    # A missing folder is made (as every -o); a file where a folder must be is not.
+    (["record", "--port", "loop://", "-o", "{tmp}/a-file/L.TXT"], 1, "cannot write"),
     (["record", "--port", "loop://", "--baud", "gps=9600", "-o", "{tmp}/L.TXT"], 1,
      "has no --port"),
     (["replay", "short", "--port", "a", "--port", "b", "--port", "c", "--port", "d"], 1,
@@ -332,6 +333,7 @@ def test_record_of_a_calibration_flight_calibrates(tmp_path, capsys):
 ])
 def test_bad_input_is_one_line(tmp_path, capsys, argv, status, message):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    (tmp_path / "a-file").write_text("not a folder\n")
     code = _run(argv)
     err = capsys.readouterr().err
     assert code == status
