@@ -104,16 +104,25 @@ def record_rate(build_dir, backend, cycles, wall_s):
     import datetime
     if backend == "model" or not wall_s or wall_s < MIN_TIMED_S:
         return
-    path = Path(build_dir) / RATES_FILE
-    try:
-        rates = json.loads(path.read_text())
-        if not isinstance(rates, dict):
-            rates = {}
-    except (OSError, ValueError):
-        rates = {}
+    rates = _read_rates(build_dir)
     rates[backend] = {"cycles_per_s": cycles / wall_s, "cycles": cycles, "wall_s": wall_s,
                       "measured": datetime.datetime.now(datetime.timezone.utc)
                       .isoformat(timespec="seconds")}
+    _write_rates(build_dir, rates)
+
+
+def _read_rates(build_dir):
+    """What :data:`RATES_FILE` holds, or an empty dict for a file missing or not ours."""
+    try:
+        rates = json.loads((Path(build_dir) / RATES_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return rates if isinstance(rates, dict) else {}
+
+
+def _write_rates(build_dir, rates):
+    """Keep ``rates``; a build folder that cannot be written keeps nothing."""
+    path = Path(build_dir) / RATES_FILE
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(rates, indent=1) + "\n")
@@ -136,21 +145,11 @@ def last_stage_seconds(build_dir, name):
 def record_stages(build_dir, stages):
     """Keep a run's stage times (``{name: seconds}``) in :data:`RATES_FILE` for the next
     run's estimates; a build folder that cannot be written keeps nothing."""
-    path = Path(build_dir) / RATES_FILE
-    try:
-        rates = json.loads(path.read_text())
-        if not isinstance(rates, dict):
-            rates = {}
-    except (OSError, ValueError):
-        rates = {}
+    rates = _read_rates(build_dir)
     if not isinstance(rates.get("stages"), dict):
         rates["stages"] = {}
     rates["stages"].update(stages)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(rates, indent=1) + "\n")
-    except OSError:
-        pass
+    _write_rates(build_dir, rates)
 
 
 def _estimate(system, backend, build_dir):

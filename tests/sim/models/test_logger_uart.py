@@ -12,12 +12,11 @@ import pytest
 
 from maglog.hw.arch import uart as arch_uart
 from maglog.hw.frontend import divisor_for
-from maglog.hw.uart import UartRx
-from maglog.sim.backends.amaranth import collect_payloads, drive_line, run_simulation
 from maglog.sim.models.logger_frontend import ChannelLine
 from maglog.sim.models.logger_uart import UartReceiver, line_changes, received_as_sent
 from maglog.sim.reference import ERROR_MARK
 from maglog.sim.stimulus.config import CHANNEL_NAMES
+from uart_gateware import uartrx_receives
 
 #: NMEA text (ASCII: bit 7 space, so a stop bit read one bit early is a framing error), then
 #: bytes that exercise the data bits both ways and a 0x00 (read late: a break).
@@ -37,18 +36,7 @@ def _segments(changes, end):
 
 
 def _gateware(segments, divisor):
-    dut = UartRx(divisor_init=divisor)
-    got = []
-
-    async def line(ctx):
-        await drive_line(ctx, dut.rx, segments)
-
-    async def sink(ctx):
-        await collect_payloads(ctx, dut.o, got)
-
-    run_simulation(dut, [line], background=[sink], name="model_uart", deadline=1.0)
-    return [(bool(p.framing_error or p.brk or p.overrun),
-             None if p.framing_error or p.brk else p.data) for p in got]
+    return uartrx_receives(segments, divisor, name="model_uart", deadline=1.0)
 
 
 def _model(changes, divisor):

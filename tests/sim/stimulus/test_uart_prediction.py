@@ -9,8 +9,7 @@ from dataclasses import replace
 import pytest
 
 from maglog.hw.frontend import divisor_for
-from maglog.hw.uart import UartRx
-from maglog.sim.backends.amaranth import collect_payloads, drive_line, run_simulation
+from uart_gateware import uartrx_receives
 
 
 def _line(system, channel, start, stop):
@@ -33,18 +32,7 @@ def _line(system, channel, start, stop):
 
 
 def _gateware(segments, divisor):
-    dut = UartRx(divisor_init=divisor)
-    got = []
-
-    async def line(ctx):
-        await drive_line(ctx, dut.rx, segments)
-
-    async def sink(ctx):
-        await collect_payloads(ctx, dut.o, got)
-
-    run_simulation(dut, [line], background=[sink], name="uart_prediction", deadline=10.0)
-    return [(bool(p.framing_error or p.brk or p.overrun),
-             None if p.framing_error or p.brk else p.data) for p in got]
+    return uartrx_receives(segments, divisor, name="uart_prediction", deadline=10.0)
 
 
 @pytest.mark.parametrize("channel, start, stop", [
