@@ -796,8 +796,8 @@ def calib_heldout_systematic(report):
              f"{c['noise_nT']:g}"] + [cell(c["estimators"][n]) for n in names] for c in cases]
     return table(["coverage", "errors", "noise (nT)"] + [HELDOUT_NAMES[n] for n in names],
                  rows, "llr" + "r" * len(names)) + [
-        "", f"Each cell: worst / median over {cases[0]['seeds']} seeds of RMS(\|K b − c\| − "
-            "\|B_true\|) in nT on the held-out half's attitudes with the sensor's noise left "
+        "", f"Each cell: worst / median over {cases[0]['seeds']} seeds of RMS(\\|K b − c\\| − "
+            "\\|B_true\\|) in nT on the held-out half's attitudes with the sensor's noise left "
             "out (the same error model applied to the true body field without noise): the "
             "error the fitted parameters themselves make where the flight went next, which "
             "a survey line does not average away. Collapsed fits are left out, as above."]
