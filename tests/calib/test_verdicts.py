@@ -116,10 +116,9 @@ def test_a_weak_flight_is_undetermined_everywhere_and_never_passes(weak_flight, 
     assert "accepted" not in printed and "PASS" not in printed
 
 
+@pytest.mark.parametrize("weak_flight", ["uav30"], indirect=True)
 def test_the_uav_pattern_leaves_k33_and_c3_about_three_times_the_noise(weak_flight):
     kind, folder, run, summary = weak_flight
-    if kind != "uav30":
-        pytest.skip("the UAV pattern's figures")
     d = run.coverage.determination
     ratio = dict(zip(PARAMETERS, d.sigma_nT / d.bound_nT))
     assert ratio["k33"] > 2 and ratio["c3"] > 2, ratio
