@@ -425,6 +425,9 @@ def _survey(path, options, progress=None):
     timing = cesium_times(parsed)
     ces = parsed.cesium
     warnings = []
+    untrusted = _vector_calibration_warning(run)
+    if untrusted:
+        warnings.append(untrusted)
     valid = _screen_cesium(timing.t, ces.field, notes)
     t, raw = timing.t[valid], ces.field[valid]
     if timing.method != "rate":
@@ -591,6 +594,44 @@ def _truth_misfit(scores):
                 "site or heights) is not this flight's; its scores are not a measure of "
                 "this reduction"]
     return []
+
+
+#: The compensation is built on the calibrated vector's direction cosines: a calibration
+#: that leaves the field's direction uncertain by more than this share of the field (its
+#: residual against the cesium, or an undetermined parameter's 1 sigma in nT of field)
+#: makes the compensation and the map untrustworthy. The built-in survey's +-30 deg box
+#: leaves k33 and c3 at about 11 nT of a 49,000 nT field: 2e-4, far below.
+DIRECTION_SHARE = 0.01
+
+
+def _vector_calibration_warning(run):
+    """A warning when the vector calibration the compensation rests on failed, does not fit
+    the cesium, or leaves a parameter undetermined by more than :data:`DIRECTION_SHARE` of
+    the field; None otherwise."""
+    from .coverage import PARAMETERS
+    field_nt = float(np.median(run.r))
+    rms = float(np.sqrt(np.mean(run.residual ** 2)))
+    reasons = []
+    coverage = getattr(run, "coverage", None)
+    if coverage is not None and coverage.verdict == "failed":
+        reasons.append(f"its fit failed ({coverage.fit_message})")
+    if rms > DIRECTION_SHARE * field_nt:
+        reasons.append(f"it leaves {rms:.3g} nT RMS against the cesium "
+                       f"({rms / field_nt:.1%} of the field)")
+    if coverage is not None and coverage.verdict == "undetermined":
+        sigma = coverage.determination.sigma_nT
+        loose = [n for n in coverage.undetermined
+                 if not sigma[PARAMETERS.index(n)] <= DIRECTION_SHARE * field_nt]
+        if loose:
+            reasons.append(f"it leaves {', '.join(loose)} undetermined beyond "
+                           f"{DIRECTION_SHARE:.0%} of the field "
+                           f"({coverage.determination.figures(loose)})")
+    if not reasons:
+        return None
+    return ("the vector magnetometer's calibration is not to be trusted: "
+            + "; ".join(reasons) + ": the compensation is built on its direction cosines, "
+            "so the compensation and the map rest on it (fly a calibration box that turns "
+            "the sensor about every axis, or check the vector sensor's data)")
 
 
 def _screen_cesium(t, field, notes):

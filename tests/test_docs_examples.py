@@ -225,6 +225,8 @@ class Scratch:
 
     def provide(self, need):
         target = self.folder / need
+        if need.startswith("build/survey/"):
+            self.provide("build/survey")        # the folder first: its files linked in
         if target.exists():
             return
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -233,11 +235,11 @@ class Scratch:
         elif need == "my.toml":
             target.write_text((ROOT / "sim/stimulus/short.toml").read_text())
         elif need == "my_flight.toml":
-            # A flight of one's own: the default's calibration pattern (so that it
-            # determines every parameter and can pass) without the survey lines.
+            # A flight of one's own: the default's, renamed (a shorter one would leave its
+            # faults' windows or its parameters undetermined, and could not pass).
             text = (ROOT / "sim/stimulus/default.toml").read_text()
-            text, count = re.subn(r"(?m)^legs = 2\b", "legs = 0", text)
-            assert count == 1, "default.toml's [flight.survey] legs moved"
+            text, count = re.subn(r'(?m)^name = "default"', 'name = "my_flight"', text)
+            assert count == 1, "default.toml's [scenario] name moved"
             target.write_text(text)
         elif need in ("build/run", "build/quick", "build/survey"):
             # The shared folder's files linked into a folder of this scratch's own, so that
@@ -249,8 +251,6 @@ class Scratch:
         elif need == "build/logs/LOG00001.TXT":
             target.write_bytes(self.shared.log(self.shared.run()))
         elif need == "build/survey/logs/LOG00001.TXT":
-            self.provide("build/survey")
-            target.parent.mkdir(parents=True, exist_ok=True)
             target.write_bytes(self.shared.log(self.shared.survey()))
         elif need == "LOG00001.TXT":
             target.write_bytes(self.shared.log(self.shared.run()))

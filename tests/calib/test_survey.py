@@ -420,6 +420,34 @@ def test_a_given_lag_the_crossovers_contradict_is_warned(flight, tmp_path, capsy
     _warned_everywhere(out, printed, "the lag given (1 s) leaves the crossovers")
 
 
+def test_a_vector_calibration_not_to_be_trusted_is_warned(flight, result, tmp_path, capsys):
+    """A vector magnetometer that sends eleven readings over and over (the mutation run's
+    find): its calibration fails and leaves thousands of nT, so the compensation built on
+    its directions is warned about, not mapped as if nothing were wrong. The flight itself
+    (its k33 and c3 a few nT undetermined at most) gets no such warning."""
+    assert not any("calibration is not to be trusted" in w for w in result.warnings)
+    rng = np.random.default_rng(3)
+    table = rng.uniform(-40000, 40000, size=(11, 3))
+    out, k = [], 0
+    for line in flight["log"].read_bytes().splitlines(keepends=True):
+        if line.startswith(b"$PMAG1,"):
+            seq = line.split(b",")[1].decode()
+            body = "PMAG1,%s,%+.1f,%+.1f,%+.1f" % (seq, *table[k % 11])
+            check = 0
+            for byte in body.encode():
+                check ^= byte
+            line = b"$%s*%02X\r\n" % (body.encode(), check)
+            k += 1
+        out.append(line)
+    log = tmp_path / "LOG00001.TXT"
+    log.write_bytes(b"".join(out))
+    status, printed, err = _survey_cli([str(log), "-o", str(tmp_path / "out"),
+                                        "--no-deinterf", "--no-base", "--no-truth"], capsys)
+    assert status == 0, err
+    _warned_everywhere(tmp_path / "out", printed,
+                       "the vector magnetometer's calibration is not to be trusted")
+
+
 def test_an_implausible_compensation_is_warned(flight, tmp_path, capsys):
     """A band above the manoeuvres (1-4 Hz) holds mostly the cesium's noise: the 18 terms
     reproduce it (their diagonal induced terms sum to the reading itself) and the box's
