@@ -27,7 +27,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -108,7 +108,6 @@ class Rule:
     #: (tool, message): without ``tool`` on PATH the example must end in exit status 1 and
     #: this one-line message (a user without that tool meets it), not a shell's error.
     without: tuple = ()
-    marks: list = field(default_factory=list)
 
     def claims(self, example):
         return example.language == self.language and re.search(self.pattern, example.text)
@@ -248,12 +247,10 @@ class Scratch:
             target.mkdir()
             for item in source.iterdir():
                 (target / item.name).symlink_to(item)
-        elif need == "build/logs/LOG00001.TXT":
+        elif need in ("LOG00001.TXT", "build/logs/LOG00001.TXT"):
             target.write_bytes(self.shared.log(self.shared.run()))
         elif need == "build/survey/logs/LOG00001.TXT":
             target.write_bytes(self.shared.log(self.shared.survey()))
-        elif need == "LOG00001.TXT":
-            target.write_bytes(self.shared.log(self.shared.run()))
         elif need in ("build/ep4ce6", "build/de0nano"):
             target.mkdir()
             (target / "left-over.txt").write_text("not empty: --force is needed\n")
